@@ -1,0 +1,128 @@
+"""What the odometry tells the outside world: per-frame results, typed events and the Sink protocol.
+
+The core never imports a viewer. It is handed sinks (objects with the methods of ``Sink``) and calls them,
+the way DSO calls its Output3DWrapper. Every pose here is ``T_world_cam`` (camera-to-world, 4x4), every
+timestamp is in seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+
+class EventKind(str, Enum):
+    """Every kind of event the system can emit; the string value is what events.jsonl stores."""
+
+    INITIALIZATION_STARTED = "initialization_started"
+    INITIALIZATION_SUCCEEDED = "initialization_succeeded"
+    INITIALIZATION_FAILED = "initialization_failed"
+    INITIALIZER_MODEL = "initializer_model"  # H or F chosen, with scores
+    TRACKING_OK = "tracking_ok"
+    TRACKING_FAILED = "tracking_failed"
+    DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps
+    RECOVERY_TRIED = "recovery_tried"
+    RECOVERY_SUCCEEDED = "recovery_succeeded"
+    RECOVERY_FAILED = "recovery_failed"
+    REINITIALIZATION = "reinitialization"
+    KEYFRAME_ADDED = "keyframe_added"
+    KEYFRAME_MARGINALIZED = "keyframe_marginalized"
+    MAP_POINTS_CULLED = "map_points_culled"
+    WINDOW_OPTIMIZED = "window_optimized"
+    FRAME_SKIPPED = "frame_skipped"  # unreadable image skipped by the loader
+    FRAMES_DROPPED = "frames_dropped"  # dropped on purpose by the player (scripted or live)
+
+
+@dataclass(frozen=True)
+class Event:
+    """One thing that happened at one frame; ``details`` holds JSON-serializable values."""
+
+    kind: EventKind
+    frame_index: int
+    timestamp: float
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        return {
+            "frame": self.frame_index,
+            "timestamp": self.timestamp,
+            "kind": self.kind.value,
+            "details": self.details,
+        }
+
+
+@dataclass
+class FrameResult:
+    """The outcome of tracking one frame.
+
+    ``T_world_cam`` is None when the frame got no pose (before initialization, or a tracking failure).
+    ``rmse_before``/``rmse_after`` are the photometric residuals of the direct alignment before and after
+    optimization (FDMO's divergence test), None for methods without them.
+    ``timings_ms`` maps a stage name to milliseconds spent on it for this frame.
+    ``points_2d`` are the pixels the method tracked in this frame (selected direct points or features).
+    """
+
+    frame_index: int
+    timestamp: float
+    T_world_cam: np.ndarray | None
+    tracked: bool
+    is_keyframe: bool = False
+    rmse_before: float | None = None
+    rmse_after: float | None = None
+    num_inliers: int | None = None
+    points_2d: np.ndarray | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    events: list[Event] = field(default_factory=list)
+
+
+@dataclass
+class MapSnapshot:
+    """The maps as they stand, for viewers: world points with colors or inverse depths, keyframe poses."""
+
+    direct_points_world: np.ndarray | None = None  # (N, 3)
+    direct_inverse_depths: np.ndarray | None = None  # (N,)
+    feature_points_world: np.ndarray | None = None  # (M, 3)
+    keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)  # frame index -> T_world_cam
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """What the app implements to receive the odometry's output. All methods are called on the tracking thread."""
+
+    def on_frame(self, frame: Any, result: FrameResult) -> None:
+        """A frame was processed; ``frame`` is the datasets.Frame that was tracked."""
+
+    def on_event(self, event: Event) -> None:
+        """An event happened (also listed in the FrameResult of its frame)."""
+
+    def on_map(self, snapshot: MapSnapshot) -> None:
+        """The maps changed (after a keyframe, a window optimization or a recovery)."""
+
+    def close(self) -> None:
+        """The run ended; flush and release."""
+
+
+class EventBus:
+    """Fans results and events out to the sinks the system was given."""
+
+    def __init__(self, sinks: list[Sink] | None = None):
+        self.sinks: list[Sink] = list(sinks or [])
+
+    def event(self, event: Event) -> None:
+        for sink in self.sinks:
+            sink.on_event(event)
+
+    def frame(self, frame: Any, result: FrameResult) -> None:
+        for sink in self.sinks:
+            sink.on_frame(frame, result)
+
+    def map(self, snapshot: MapSnapshot) -> None:
+        for sink in self.sinks:
+            sink.on_map(snapshot)
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()

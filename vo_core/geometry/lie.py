@@ -1,0 +1,214 @@
+"""Lie groups SO(3), SE(3) and Sim(3) on plain numpy arrays.
+
+Conventions, used everywhere in the project:
+- A pose is a 4x4 homogeneous matrix named by its frames: ``T_a_b`` maps points from frame b into frame a
+  (x_a = T_a_b @ x_b). ``T_world_cam`` is camera-to-world.
+- Tangent vectors are ordered translation first, rotation second, as in Sophus (which DSO uses):
+  se(3) xi = (v, w) in R^6, sim(3) xi = (v, w, sigma) in R^7 with scale s = exp(sigma).
+- Updates are left-multiplicative: T <- exp(delta) @ T.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_SMALL_ANGLE = 1e-8  # below this the Taylor expansions are exact to double precision
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """The skew-symmetric matrix [w]x with [w]x @ p = w x p."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def vee(W: np.ndarray) -> np.ndarray:
+    """Inverse of hat."""
+    return np.array([W[2, 1], W[0, 2], W[1, 0]])
+
+
+# ----------------------------------------------------------------------------------------------- SO(3)
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula: R = I + sin(t)/t [w] + (1 - cos t)/t^2 [w]^2."""
+    w = np.asarray(w, dtype=float)
+    theta2 = float(w @ w)
+    W = hat(w)
+    if theta2 < _SMALL_ANGLE**2:
+        return np.eye(3) + W + 0.5 * W @ W
+    theta = np.sqrt(theta2)
+    return np.eye(3) + (np.sin(theta) / theta) * W + ((1.0 - np.cos(theta)) / theta2) * W @ W
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vector of R, stable near the identity and near a rotation of pi."""
+    R = np.asarray(R, dtype=float)
+    cos_theta = np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    if theta < 1e-6:
+        # R ~ I + [w]: first-order term, with the second-order correction of (R - R^T)/2.
+        return vee(R - R.T) * 0.5 * (1.0 + theta**2 / 6.0)
+    if np.pi - theta < 1e-4:
+        # Near pi, sin(theta) vanishes; recover the axis from the symmetric part R + I = 2 a a^T (1 - cos) / ...
+        B = (R + np.eye(3)) * 0.5
+        axis_index = int(np.argmax(np.diag(B)))
+        axis = B[:, axis_index] / np.sqrt(max(B[axis_index, axis_index], 1e-300))
+        axis /= np.linalg.norm(axis)
+        # Fix the sign with the (small) antisymmetric part so that log(exp(w)) = w just below pi.
+        antisym = vee(R - R.T)
+        if axis @ antisym < 0.0:
+            axis = -axis
+        return axis * theta
+    return vee(R - R.T) * (theta / (2.0 * np.sin(theta)))
+
+
+def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """V(w) of the SE(3) exponential: t = V(w) v."""
+    theta2 = float(w @ w)
+    W = hat(w)
+    if theta2 < _SMALL_ANGLE**2:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    theta = np.sqrt(theta2)
+    return (
+        np.eye(3)
+        + ((1.0 - np.cos(theta)) / theta2) * W
+        + ((theta - np.sin(theta)) / (theta2 * theta)) * W @ W
+    )
+
+
+def so3_geodesic_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Angle (rad) of the rotation taking R_a to R_b."""
+    return float(np.linalg.norm(so3_log(R_a.T @ R_b)))
+
+
+# ----------------------------------------------------------------------------------------------- SE(3)
+
+
+def se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a 4x4 transform from a rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """exp of xi = (v, w): R = exp([w]), t = V(w) v."""
+    xi = np.asarray(xi, dtype=float)
+    v, w = xi[:3], xi[3:6]
+    return se3(so3_exp(w), so3_left_jacobian(w) @ v)
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Inverse of se3_exp."""
+    w = so3_log(T[:3, :3])
+    v = np.linalg.solve(so3_left_jacobian(w), T[:3, 3])
+    return np.concatenate([v, w])
+
+
+def se3_inverse(T: np.ndarray) -> np.ndarray:
+    """T^-1 = [R^T, -R^T t] without a general matrix inverse."""
+    R, t = T[:3, :3], T[:3, 3]
+    return se3(R.T, -R.T @ t)
+
+
+def se3_adjoint(T: np.ndarray) -> np.ndarray:
+    """Adj(T) with T exp(xi) T^-1 = exp(Adj(T) xi), for xi = (v, w): [[R, [t]x R], [0, R]]."""
+    R, t = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[:3, 3:] = hat(t) @ R
+    A[3:, 3:] = R
+    return A
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 (SE(3) or Sim(3)) transform to an (N, 3) array of points."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+# ----------------------------------------------------------------------------------------------- Sim(3)
+
+
+def sim3(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 similarity [sR t; 0 1]."""
+    S = np.eye(4)
+    S[:3, :3] = s * R
+    S[:3, 3] = t
+    return S
+
+
+def sim3_scale(S: np.ndarray) -> float:
+    """The scale of a similarity, from the determinant of its 3x3 block."""
+    return float(np.cbrt(np.linalg.det(S[:3, :3])))
+
+
+def _sim3_v_matrix(w: np.ndarray, sigma: float) -> np.ndarray:
+    """W(w, sigma) with t = W v for the Sim(3) exponential (Strasdat's thesis, eq. 6.49).
+
+    W = A I + B [w] + C [w]^2, integrating exp(sigma u) exp(u [w]) over u in [0, 1]."""
+    theta2 = float(w @ w)
+    theta = np.sqrt(theta2)
+    W = hat(w)
+    I3 = np.eye(3)
+    small_s = abs(sigma) < 1e-8
+    small_t = theta < 1e-8
+    if small_s:
+        A = 1.0
+    else:
+        A = (np.exp(sigma) - 1.0) / sigma
+    if small_t and small_s:
+        return I3 + 0.5 * W + W @ W / 6.0
+    if small_t:
+        es = np.exp(sigma)
+        B = ((sigma - 1.0) * es + 1.0) / sigma**2
+        C = (((sigma**2 - 2.0 * sigma + 2.0) * es) - 2.0) / (2.0 * sigma**3)
+        return A * I3 + B * W + C * W @ W
+    if small_s:
+        B = (1.0 - np.cos(theta)) / theta2
+        C = (theta - np.sin(theta)) / (theta2 * theta)
+        return A * I3 + B * W + C * W @ W
+    es = np.exp(sigma)
+    a = es * np.sin(theta)
+    b = es * np.cos(theta)
+    c = theta2 + sigma**2
+    B = (a * sigma + (1.0 - b) * theta) / (theta * c)
+    C = (A - ((b - 1.0) * sigma + a * theta) / c) / theta2
+    return A * I3 + B * W + C * W @ W
+
+
+def sim3_exp(xi: np.ndarray) -> np.ndarray:
+    """exp of xi = (v, w, sigma): s = e^sigma, R = exp([w]), t = W(w, sigma) v."""
+    xi = np.asarray(xi, dtype=float)
+    v, w, sigma = xi[:3], xi[3:6], float(xi[6])
+    return sim3(np.exp(sigma), so3_exp(w), _sim3_v_matrix(w, sigma) @ v)
+
+
+def sim3_log(S: np.ndarray) -> np.ndarray:
+    """Inverse of sim3_exp."""
+    s = sim3_scale(S)
+    R = S[:3, :3] / s
+    w = so3_log(R)
+    sigma = np.log(s)
+    v = np.linalg.solve(_sim3_v_matrix(w, sigma), S[:3, 3])
+    return np.concatenate([v, w, [sigma]])
+
+
+def sim3_inverse(S: np.ndarray) -> np.ndarray:
+    """[sR t]^-1 = [R^T/s, -R^T t / s]."""
+    s = sim3_scale(S)
+    R = S[:3, :3] / s
+    return sim3(1.0 / s, R.T, -(R.T @ S[:3, 3]) / s)
+
+
+def sim3_adjoint(S: np.ndarray) -> np.ndarray:
+    """Adj(S) for xi = (v, w, sigma): [[sR, [t]x R, -t], [0, R, 0], [0, 0, 1]]."""
+    s = sim3_scale(S)
+    R = S[:3, :3] / s
+    t = S[:3, 3]
+    A = np.zeros((7, 7))
+    A[:3, :3] = s * R
+    A[:3, 3:6] = hat(t) @ R
+    A[:3, 6] = -t
+    A[3:6, 3:6] = R
+    A[6, 6] = 1.0
+    return A
