@@ -1,8 +1,135 @@
-"""Settings of the direct half (DSO, Engel et al. 2017; FDMO section 4.2.1). Filled in by the direct issues."""
+"""Settings of the direct half (DSO, Engel et al. 2017; FDMO section 4.2.1).
 
-from dataclasses import dataclass
+Defaults are DSO's, from src/util/settings.cpp unless another file is named; ``settings.cpp`` below means
+JakobEngel/dso src/util/settings.cpp, ``CoarseTracker`` means src/FullSystem/CoarseTracker.cpp, and so on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+# DSO's 8-pixel residual pattern (settings.cpp staticPattern[8], "8 for SSE efficiency"): (dx, dy) offsets.
+PATTERN_8 = ((0, -2), (-1, -1), (1, -1), (-2, 0), (0, 0), (2, 0), (-1, 1), (0, 2))
+
+
+@dataclass
+class PyramidConfig:
+    max_levels: int = 6  # settings.cpp PYR_LEVELS / pyrLevelsUsed
+    min_pixels_coarsest: int = 5000  # globalCalib.cpp: halve while w*h > 5000 (640x480 -> 5 levels, 40x30)
+
+
+@dataclass
+class SelectorConfig:
+    """DSO's PixelSelector (PixelSelector2.cpp)."""
+
+    block_size: int = 32  # region of the adaptive gradient threshold (makeHists)
+    hist_quantile: float = 0.5  # setting_minGradHistCut: the median of |grad| per block
+    hist_add: float = 7.0  # setting_minGradHistAdd: threshold = median + 7
+    hist_max_gradient: int = 48  # makeHists clamps |grad| to 48 in its histogram
+    grad_downweight_per_level: float = 0.75  # setting_gradDownweightPerLevel
+    initial_potential: int = 3  # PixelSelector::currentPotential
+    max_resample_rounds: int = 1  # makeMaps(recursionsLeft = 1)
+    resample_more_above: float = 1.25  # makeMaps: re-select with a smaller cell if wanted/have > 1.25
+    resample_less_below: float = 0.25  # makeMaps: re-select with a larger cell if wanted/have < 0.25
+    subsample_below: float = 0.95  # makeMaps: randomly thin out when wanted/have < 0.95
+    border: int = 4  # select(): pixels closer than 4 to the border are never selected
+
+
+@dataclass
+class TrackerConfig:
+    """Coarse tracker (CoarseTracker.cpp trackNewestCoarse) and its motion hypotheses (FullSystem.cpp)."""
+
+    huber_threshold: float = 9.0  # setting_huberTH
+    cutoff_threshold: float = 20.0  # setting_coarseCutoffTH: residuals above count as saturated
+    max_saturated_ratio: float = 0.6  # trackNewestCoarse: double the cutoff while > 60% saturated
+    max_cutoff_repeat: float = 50.0  # trackNewestCoarse: levelCutoffRepeat < 50
+    max_iterations: tuple[int, ...] = (10, 20, 50, 50, 50, 50)  # maxIterations[] per level (finest first)
+    initial_lambda: float = 0.01
+    lambda_extrapolation_limit: float = 0.001
+    lambda_decrease: float = 0.5
+    lambda_increase: float = 4.0
+    min_increment_norm: float = 1e-3  # stop the level when |inc| <= 1e-3
+    abort_factor: float = 1.5  # give up when a level is 1.5x worse than the best hypothesis so far
+    max_abs_a: float = 1.2  # trackNewestCoarse: |a| > 1.2 -> fail
+    max_abs_b: float = 200.0  # trackNewestCoarse: |b| > 200 -> fail
+    # HessianBlocks.h step scaling; DSO applies SCALE_XI_ROT = 1 to the first (translation) block of its
+    # Sophus-ordered increment and SCALE_XI_TRANS = 0.5 to the rotation block: we keep that behaviour.
+    scale_translation: float = 1.0
+    scale_rotation: float = 0.5
+    scale_a: float = 10.0  # SCALE_A
+    scale_b: float = 1000.0  # SCALE_B
+    retrack_threshold: float = 1.5  # setting_reTrackThreshold: accept a hypothesis within 1.5x last RMSE
+    rotation_perturbation: float = 0.02  # trackNewCoarse: quaternion components +-0.02 (~2.3 degrees)
+    flow_sample_stride: int = 32  # calcRes: every 32nd point feeds the optical-flow indicators
+    min_points_in_view: int = 20  # fewer valid residual terms than this at the finest level = failure
+
+
+@dataclass
+class KeyframeConfig:
+    """FullSystem::addActiveFrame's keyframe decision; weights scale with (w + h) / (640 + 480)."""
+
+    global_weight: float = 1.0  # setting_kfGlobalWeight
+    max_shift_weight_t: float = 0.04 * (640 + 480)  # setting_maxShiftWeightT
+    max_shift_weight_r: float = 0.0 * (640 + 480)  # setting_maxShiftWeightR
+    max_shift_weight_rt: float = 0.02 * (640 + 480)  # setting_maxShiftWeightRT
+    max_affine_weight: float = 2.0  # setting_maxAffineWeight
+    rmse_growth: float = 2.0  # new keyframe when RMSE > 2 x the first RMSE against this keyframe
+
+
+@dataclass
+class ImmatureConfig:
+    """ImmaturePoint::traceOn and the activation test of FullSystem::activatePointsMT."""
+
+    density: float = 1500.0  # setting_desiredImmatureDensity: immature points per keyframe
+    max_pixel_search: float = 0.027  # setting_maxPixSearch, times (w + h)
+    min_trace_quality: float = 3.0  # setting_minTraceQuality
+    min_trace_test_radius: int = 2  # setting_minTraceTestRadius
+    trace_stepsize: float = 1.0  # setting_trace_stepsize
+    trace_gn_iterations: int = 3  # setting_trace_GNIterations
+    trace_gn_threshold: float = 0.1  # setting_trace_GNThreshold
+    trace_extra_slack: float = 1.2  # setting_trace_extraSlackOnTH
+    trace_slack_interval: float = 1.5  # setting_trace_slackInterval
+    trace_min_improvement: float = 2.0  # setting_trace_minImprovementFactor
+    huber_threshold: float = 9.0  # setting_huberTH (the tracker's too)
+    outlier_threshold: float = 12.0 * 12.0  # setting_outlierTH (per pattern pixel)
+    outlier_sum_component: float = 50.0 * 50.0  # setting_outlierTHSumComponent
+    max_activation_interval: float = 8.0  # activatePointsMT: lastTracePixelInterval < 8
+    min_scale_change: float = 0.75  # traceOn: OOB when the depth ratio leaves [0.75, 1.5]
+    max_scale_change: float = 1.5
+    max_steps: int = 100  # traceOn: errors[100]
+    border: float = 4.0  # traceOn: projections must stay 4 px inside the image
+
+
+@dataclass
+class InitializerConfig:
+    """DSO's CoarseInitializer (CoarseInitializer.cpp trackFrame / setFirst)."""
+
+    densities: tuple[float, ...] = (0.03, 0.05, 0.15, 0.5, 1.0, 1.0)  # setFirst: points per level / (w*h)
+    max_iterations: tuple[int, ...] = (5, 5, 10, 30, 50, 50)  # trackFrame maxIterations[] (finest first)
+    alpha_k: float = 2.5 * 2.5  # alphaK
+    alpha_w: float = 150.0 * 150.0  # alphaW
+    regularization_weight: float = 0.8  # regWeight: pull toward the neighbours' median
+    coupling_weight: float = 1.0  # couplingWeight
+    num_neighbours: int = 10  # makeNN: 10 nearest neighbours per level
+    initial_lambda: float = 0.1
+    min_increment: float = 1e-4  # eps
+    max_fails: int = 2
+    max_pixel_step: float = 0.25  # doStep: maxPixelStep
+    idepth_range: tuple[float, float] = (1e-3, 50.0)  # doStep clamps
+    frames_after_snap: int = 5  # trackFrame: snapped && frameID > snappedAt + 5
+    outlier_energy_factor: float = 20.0  # calcResAndGS: energy > outlierTH * 20 -> not good
+    selector_threshold_factor: float = 2.0  # setFirst: makeMaps(..., thFactor = 2)
+    max_frames: int = 40  # give up on this first frame and restart after this many frames (ours)
 
 
 @dataclass
 class DirectConfig:
-    pass
+    initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
+    point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
+    window_keyframes: int = 7  # setting_maxFrames: keyframes whose points feed the tracker
+    pyramid: PyramidConfig = field(default_factory=PyramidConfig)
+    selector: SelectorConfig = field(default_factory=SelectorConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    immature: ImmatureConfig = field(default_factory=ImmatureConfig)
+    coarse_init: InitializerConfig = field(default_factory=InitializerConfig)

@@ -1,0 +1,24 @@
+"""Affine brightness transfer between frames (DSO's AffLight, DSO paper Eq. 4).
+
+Each frame i has (a_i, b_i) mapping its irradiance into a common scale; a pixel of frame i predicts the
+intensity in frame j as I_j ~ factor * I_i + offset with (AffLight::fromToVecExposure)
+
+    factor = (t_j / t_i) * exp(a_j - a_i),   offset = b_j - factor * b_i,
+
+where t is the exposure time (1 when unknown).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def relative_affine(
+    exposure_from: float | None, exposure_to: float | None, ab_from: np.ndarray, ab_to: np.ndarray
+) -> tuple[float, float]:
+    """(factor, offset) predicting intensities of frame ``to`` from frame ``from``."""
+    exposure_ratio = 1.0
+    if exposure_from and exposure_to:
+        exposure_ratio = exposure_to / exposure_from
+    factor = exposure_ratio * float(np.exp(ab_to[0] - ab_from[0]))
+    return factor, float(ab_to[1] - factor * ab_from[1])

@@ -1,0 +1,283 @@
+"""Immature points: candidate pixels of a keyframe whose inverse depth is found by epipolar search.
+
+Follows DSO's ImmaturePoint::traceOn, vectorized over all points of one host keyframe. Each trace projects
+the current inverse-depth interval [idepth_min, idepth_max] into the new frame, searches the epipolar segment
+in 1-px steps with the 8-pixel pattern (Huber energy), refines the best step by Gauss-Newton along the line,
+and shrinks the interval to the pixel error bound of the result. The quality is the ratio of the second-best
+energy (outside +-2 steps) to the best. A point may become active (used for tracking) when its last trace is
+good, its interval is below 8 px and its quality above 3 (FullSystem::activatePointsMT).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+
+from vo_core.direct.config import ImmatureConfig
+from vo_core.direct.coarse_tracker import PATTERN, huber_weight
+from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
+
+MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
+
+
+class TraceStatus(IntEnum):
+    """DSO's ImmaturePointStatus."""
+
+    UNINITIALIZED = 0
+    GOOD = 1  # traced, interval updated
+    OOB = 2  # out of bounds (or too large a scale change): dropped
+    OUTLIER = 3  # energy too high
+    SKIPPED = 4  # interval already below 1.5 px: nothing to learn
+    BAD_CONDITION = 5  # the epipolar line runs along an edge: the search would not shrink the interval
+
+
+ACTIVATABLE = (TraceStatus.GOOD, TraceStatus.SKIPPED, TraceStatus.BAD_CONDITION, TraceStatus.OOB)
+
+
+@dataclass
+class ImmaturePoints:
+    """All immature points of one host keyframe (struct of arrays)."""
+
+    uv: np.ndarray  # (N, 2) level-0 pixels in the host
+    kind: np.ndarray  # (N,) selector type 1/2/4
+    color: np.ndarray  # (N, 8) host intensities of the pattern
+    weight: np.ndarray  # (N, 8) gradient-dependent pattern weights (GN energy)
+    grad_h: np.ndarray  # (N, 2, 2) sum over the pattern of g g^T
+    energy_threshold: np.ndarray  # (N,)
+    idepth_min: np.ndarray
+    idepth_max: np.ndarray  # NaN until the first successful trace
+    quality: np.ndarray
+    status: np.ndarray  # TraceStatus values
+    pixel_interval: np.ndarray  # length of the last interval in px
+    last_uv: np.ndarray  # (N, 2) last traced position, -1 when unknown
+
+    def __len__(self) -> int:
+        return len(self.uv)
+
+    @classmethod
+    def create(cls, host: ImagePyramid, uv: np.ndarray, kind: np.ndarray, config: ImmatureConfig) -> "ImmaturePoints":
+        """ImmaturePoint's constructor: sample the pattern in the host; drop points whose pattern leaves it."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        pattern_uv = uv[:, None, :] + PATTERN[None]
+        sampled = host[0].sample(pattern_uv[..., 0], pattern_uv[..., 1])  # (N, 8, 3)
+        ok = np.all(np.isfinite(sampled[..., 0]), axis=1)
+        sampled, uv, kind = sampled[ok], uv[ok], np.asarray(kind)[ok]
+        gradient = sampled[..., 1:].astype(float)
+        n = len(uv)
+        grad_sq = np.sum(gradient**2, axis=2)
+        return cls(
+            uv=uv,
+            kind=kind,
+            color=sampled[..., 0].astype(float),
+            weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
+            grad_h=np.einsum("npi,npj->nij", gradient, gradient),
+            energy_threshold=np.full(n, len(PATTERN) * config.outlier_threshold),
+            idepth_min=np.zeros(n),
+            idepth_max=np.full(n, np.nan),
+            quality=np.full(n, 10000.0),
+            status=np.full(n, TraceStatus.UNINITIALIZED, dtype=np.int8),
+            pixel_interval=np.zeros(n),
+            last_uv=np.full((n, 2), -1.0),
+        )
+
+    def subset(self, keep: np.ndarray) -> "ImmaturePoints":
+        return ImmaturePoints(**{name: getattr(self, name)[keep] for name in self.__dataclass_fields__})
+
+    # ---------------------------------------------------------------------------------- activation
+
+    def activatable(self, config: ImmatureConfig) -> np.ndarray:
+        """activatePointsMT's test: traced well, a narrow interval, an unambiguous match, positive depth."""
+        return (
+            np.isin(self.status, ACTIVATABLE)
+            & (self.pixel_interval < config.max_activation_interval)
+            & (self.quality > config.min_trace_quality)
+            & (self.idepth_max + self.idepth_min > 0)
+        )
+
+    def hopeless(self) -> np.ndarray:
+        """Points DSO deletes: never traced successfully, outliers, or out of bounds without a result."""
+        return ~np.isfinite(self.idepth_max) | (self.status == TraceStatus.OUTLIER)
+
+    @property
+    def idepth(self) -> np.ndarray:
+        """The estimate used on activation: the middle of the interval."""
+        return 0.5 * (self.idepth_min + self.idepth_max)
+
+    # ---------------------------------------------------------------------------------- tracing
+
+    def trace(
+        self, frame: PyramidLevel, T_frame_host: np.ndarray, affine: tuple[float, float], config: ImmatureConfig
+    ) -> None:
+        """traceOn for every point not yet out of bounds, against level 0 of a new frame."""
+        todo = np.flatnonzero(self.status != TraceStatus.OOB)
+        if len(todo) == 0:
+            return
+        camera = frame.camera
+        K = camera.K
+        KRKi = K @ T_frame_host[:3, :3] @ np.linalg.inv(K)
+        Kt = K @ T_frame_host[:3, 3]
+        width, height, border = camera.width, camera.height, config.border
+        max_search = (width + height) * config.max_pixel_search
+
+        def inside(u, v):
+            return (u > border) & (v > border) & (u < width - 1 - border) & (v < height - 1 - border)
+
+        def fail(index, status):
+            self.status[index] = status
+            self.last_uv[index] = -1.0
+            self.pixel_interval[index] = 0.0
+
+        uv = self.uv[todo]
+        pr = np.column_stack([uv, np.ones(len(todo))]) @ KRKi.T
+        id_min, id_max = self.idepth_min[todo], self.idepth_max[todo]
+        p_min = pr + id_min[:, None] * Kt
+        u_min, v_min = p_min[:, 0] / p_min[:, 2], p_min[:, 1] / p_min[:, 2]
+        bounded = np.isfinite(id_max)
+        p_max = pr + np.where(bounded, id_max, 0.01)[:, None] * Kt  # unbounded: any depth gives the direction
+        u_max, v_max = p_max[:, 0] / p_max[:, 2], p_max[:, 1] / p_max[:, 2]
+        dist = np.hypot(u_max - u_min, v_max - v_min)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # Unbounded interval: search max_search pixels from the projection at infinity.
+            u_max = np.where(bounded, u_max, u_min + max_search * (u_max - u_min) / dist)
+            v_max = np.where(bounded, v_max, v_min + max_search * (v_max - v_min) / dist)
+        dist = np.where(bounded, dist, max_search)
+        scale_ok = (id_min < 0) | ((p_min[:, 2] > config.min_scale_change) & (p_min[:, 2] < config.max_scale_change))
+        oob = ~inside(u_min, v_min) | ~inside(u_max, v_max) | ~scale_ok | ~np.isfinite(dist)
+        fail(todo[oob], TraceStatus.OOB)
+
+        skipped = ~oob & bounded & (dist < config.trace_slack_interval)
+        self._keep_midpoint(todo[skipped], u_min, v_min, u_max, v_max, dist, skipped, TraceStatus.SKIPPED)
+
+        # Error bound in pixels: large when the gradient is parallel to the epipolar line.
+        dx, dy = config.trace_stepsize * (u_max - u_min), config.trace_stepsize * (v_max - v_min)
+        G = self.grad_h[todo]
+        along = G[:, 0, 0] * dx * dx + 2 * G[:, 0, 1] * dx * dy + G[:, 1, 1] * dy * dy
+        across = G[:, 0, 0] * dy * dy - 2 * G[:, 0, 1] * dx * dy + G[:, 1, 1] * dx * dx
+        with np.errstate(divide="ignore", invalid="ignore"):
+            error_px = 0.2 + 0.2 * (along + across) / along
+        bad = ~oob & ~skipped & bounded & ~(error_px * config.trace_min_improvement <= dist)
+        self._keep_midpoint(todo[bad], u_min, v_min, u_max, v_max, dist, bad, TraceStatus.BAD_CONDITION)
+
+        search = ~oob & ~skipped & ~bad
+        if not np.any(search):
+            return
+        s = np.flatnonzero(search)
+        error_px = np.minimum(error_px[s], 10.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dx, dy = dx[s] / dist[s], dy[s] / dist[s]
+        length = np.minimum(dist[s], max_search)
+        self._search(todo[s], frame, KRKi, Kt, pr[s], u_min[s], v_min[s], dx, dy, length, error_px, affine, config)
+
+    def _keep_midpoint(self, index, u_min, v_min, u_max, v_max, dist, mask, status) -> None:
+        self.status[index] = status
+        self.last_uv[index] = np.column_stack([u_min[mask] + u_max[mask], v_min[mask] + v_max[mask]]) * 0.5
+        self.pixel_interval[index] = dist[mask]
+
+    def _pattern_energy(self, frame, index, u, v, rotated, affine, huber, weighted=False):
+        """Huber energy of the pattern at (u, v) (any leading shape matching ``index``), with gradients."""
+        factor, offset = affine
+        hit = frame.sample(u[..., None] + rotated[..., 0], v[..., None] + rotated[..., 1])
+        color = self.color[index].reshape(index.shape + (1,) * (u.ndim - 1) + (len(PATTERN),))
+        residual = hit[..., 0] - (factor * color + offset)
+        missing = ~np.isfinite(residual)
+        residual = np.where(missing, 0.0, residual)
+        w = huber_weight(residual, huber)
+        term = w * residual**2 * (2.0 - w)
+        if weighted:
+            pattern_weight = self.weight[index].reshape(color.shape)
+            term = term * pattern_weight**2
+        energy = np.sum(np.where(missing, MISSING_ENERGY, term), axis=-1)
+        return energy, residual, w, hit, missing
+
+    def _search(self, index, frame, KRKi, Kt, pr, u_min, v_min, dx, dy, length, error_px, affine, config) -> None:
+        """Discrete search along the segment, quality, Gauss-Newton refinement and the new interval."""
+        num_steps = np.minimum((1.9999 + length / config.trace_stepsize).astype(int), config.max_steps - 1)
+        # The pattern is rotated by the in-plane part of the warp (traceOn's rotatetPattern).
+        rotated = PATTERN @ KRKi[:2, :2].T  # (8, 2)
+        random_shift = u_min * 1000.0 - np.floor(u_min * 1000.0)
+        start_u, start_v = u_min - random_shift * dx, v_min - random_shift * dy
+        steps = np.arange(num_steps.max())
+        u = start_u[:, None] + steps[None] * dx[:, None]
+        v = start_v[:, None] + steps[None] * dy[:, None]
+        energy, *_ = self._pattern_energy(frame, index, u, v, rotated, affine, config.huber_threshold)
+        energy = np.where(steps[None] < num_steps[:, None], energy, np.inf)
+        best_step = np.argmin(energy, axis=1)
+        rows = np.arange(len(index))
+        best_energy = energy[rows, best_step]
+        far = np.abs(steps[None] - best_step[:, None]) > config.min_trace_test_radius
+        second = np.min(np.where(far, energy, np.inf), axis=1)
+        second = np.where(np.isfinite(second), second, 1e10)  # DSO's secondBest starts at 1e10
+        new_quality = second / np.maximum(best_energy, 1e-12)
+        update = (new_quality < self.quality[index]) | (num_steps > 10)
+        self.quality[index] = np.where(update, new_quality, self.quality[index])
+
+        best_u, best_v, best_energy = self._refine(
+            index, frame, u[rows, best_step], v[rows, best_step], dx, dy, rotated, affine, config
+        )
+        outlier = ~(best_energy < self.energy_threshold[index] * config.trace_extra_slack)
+        was_outlier = self.status[index] == TraceStatus.OUTLIER
+        self.status[index[outlier]] = np.where(was_outlier[outlier], TraceStatus.OOB, TraceStatus.OUTLIER)
+        self.last_uv[index[outlier]] = -1.0
+        self.pixel_interval[index[outlier]] = 0.0
+
+        # New interval from the pixel error bound, along the dominant image axis of the line.
+        use_u = dx * dx > dy * dy
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo_u, hi_u = best_u - error_px * dx, best_u + error_px * dx
+            lo_v, hi_v = best_v - error_px * dy, best_v + error_px * dy
+            id_lo = np.where(
+                use_u, (pr[:, 2] * lo_u - pr[:, 0]) / (Kt[0] - Kt[2] * lo_u),
+                (pr[:, 2] * lo_v - pr[:, 1]) / (Kt[1] - Kt[2] * lo_v),
+            )
+            id_hi = np.where(
+                use_u, (pr[:, 2] * hi_u - pr[:, 0]) / (Kt[0] - Kt[2] * hi_u),
+                (pr[:, 2] * hi_v - pr[:, 1]) / (Kt[1] - Kt[2] * hi_v),
+            )
+        id_min, id_max = np.minimum(id_lo, id_hi), np.maximum(id_lo, id_hi)
+        invalid = ~outlier & (~np.isfinite(id_min) | ~np.isfinite(id_max) | (id_max < 0))
+        self.status[index[invalid]] = TraceStatus.OUTLIER
+        self.last_uv[index[invalid]] = -1.0
+        self.pixel_interval[index[invalid]] = 0.0
+        good = ~outlier & ~invalid
+        g = index[good]
+        self.idepth_min[g], self.idepth_max[g] = id_min[good], id_max[good]
+        self.status[g] = TraceStatus.GOOD
+        self.pixel_interval[g] = 2.0 * error_px[good]
+        self.last_uv[g] = np.column_stack([best_u[good], best_v[good]])
+
+    def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
+        """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""
+        n = len(index)
+        backup_u, backup_v = best_u.copy(), best_v.copy()
+        step_back = np.zeros(n)
+        best_energy = np.full(n, MISSING_ENERGY)
+        running = np.ones(n, dtype=bool)
+        for _ in range(config.trace_gn_iterations):
+            r = np.flatnonzero(running)
+            if len(r) == 0:
+                break
+            energy, residual, w, hit, missing = self._pattern_energy(
+                frame, index[r], best_u[r], best_v[r], rotated, affine, config.huber_threshold, weighted=True
+            )
+            d_residual = np.where(missing, 0.0, dx[r, None] * hit[..., 1] + dy[r, None] * hit[..., 2])
+            H = 1.0 + np.sum(w * d_residual**2, axis=1)
+            b = np.sum(w * residual * d_residual, axis=1)
+            worse = energy > best_energy[r]
+            # Worse: go back half way from the last good position.
+            wr = r[worse]
+            step_back[wr] *= 0.5
+            best_u[wr] = backup_u[wr] + step_back[wr] * dx[wr]
+            best_v[wr] = backup_v[wr] + step_back[wr] * dy[wr]
+            # Better: take a (clamped) Gauss-Newton step.
+            br = r[~worse]
+            step = np.clip(-b[~worse] / H[~worse], -0.5, 0.5)
+            step = np.where(np.isfinite(step), step, 0.0)
+            backup_u[br], backup_v[br] = best_u[br], best_v[br]
+            step_back[br] = step
+            best_u[br] += step * dx[br]
+            best_v[br] += step * dy[br]
+            best_energy[br] = energy[~worse]
+            running[r] = np.abs(step_back[r]) >= config.trace_gn_threshold
+        return best_u, best_v, best_energy

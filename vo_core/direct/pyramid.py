@@ -1,0 +1,114 @@
+"""Image pyramid with gradients, as DSO's FrameHessian::makeImages.
+
+Each level halves the previous one by 2x2 averaging (an odd last row or column is dropped first) and stores
+intensity, central-difference gradients and the squared gradient magnitude. The three channels are packed
+into one (h, w, 3) float32 array so that a single ``cv2.remap`` samples intensity and gradient together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vo_core.direct.config import PyramidConfig
+from vo_core.geometry.camera import PinholeCamera
+
+
+@dataclass
+class PyramidLevel:
+    camera: PinholeCamera
+    packed: np.ndarray  # (h, w, 3) float32: intensity, d/du, d/dv
+
+    @property
+    def intensity(self) -> np.ndarray:
+        return self.packed[:, :, 0]
+
+    @property
+    def grad_sq(self) -> np.ndarray:
+        """|grad I|^2 per pixel (DSO's absSquaredGrad)."""
+        return self.packed[:, :, 1] ** 2 + self.packed[:, :, 2] ** 2
+
+    def sample(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Bilinear (intensity, du, dv) at float pixels (any shape); NaN outside the image."""
+        return remap_points(self.packed, u, v).reshape(*np.shape(u), 3)
+
+    def sample_intensity(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return remap_points(self.packed[:, :, 0], u, v).reshape(np.shape(u))
+
+
+_REMAP_COLUMNS = 4096  # cv2.remap needs maps narrower than SHRT_MAX: points are laid out in rows of this
+
+
+def remap_points(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image`` at the points (u, v), shape (N,) or (N, channels); NaN outside."""
+    u = np.asarray(u, dtype=np.float32).reshape(-1)
+    v = np.asarray(v, dtype=np.float32).reshape(-1)
+    n = len(u)
+    columns = max(min(n, _REMAP_COLUMNS), 1)
+    rows = -(-n // columns) if n else 1
+    map_u = np.full(rows * columns, -1e6, np.float32)
+    map_v = np.full(rows * columns, -1e6, np.float32)
+    map_u[:n], map_v[:n] = u, v
+    out = cv2.remap(
+        image, map_u.reshape(rows, columns), map_v.reshape(rows, columns), cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan,
+    )
+    channels = image.shape[2:] if image.ndim == 3 else ()
+    return out.reshape(rows * columns, *channels)[:n]
+
+
+def _gradients(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Central differences 0.5 (I[x+1] - I[x-1]) as DSO; zero on the border rows and columns."""
+    gx = np.zeros_like(image)
+    gy = np.zeros_like(image)
+    gx[:, 1:-1] = 0.5 * (image[:, 2:] - image[:, :-2])
+    gy[1:-1, :] = 0.5 * (image[2:, :] - image[:-2, :])
+    return gx, gy
+
+
+def _half(image: np.ndarray) -> np.ndarray:
+    """2x2 block average of the even part of the image (DSO makeImages)."""
+    h, w = (image.shape[0] // 2) * 2, (image.shape[1] // 2) * 2
+    even = image[:h, :w]
+    return 0.25 * (even[0::2, 0::2] + even[1::2, 0::2] + even[0::2, 1::2] + even[1::2, 1::2])
+
+
+def num_levels(width: int, height: int, config: PyramidConfig) -> int:
+    """DSO's rule: keep halving while the current level has more than ``min_pixels_coarsest`` pixels."""
+    levels = 1
+    while levels < config.max_levels and width * height > config.min_pixels_coarsest:
+        width, height = width // 2, height // 2
+        levels += 1
+    return levels
+
+
+class ImagePyramid:
+    """Levels 0 (full resolution) to n-1 of one image, with the camera of each level."""
+
+    def __init__(self, image: np.ndarray, camera: PinholeCamera, config: PyramidConfig):
+        image = np.asarray(image, dtype=np.float32)
+        count = num_levels(image.shape[1], image.shape[0], config)
+        self.levels: list[PyramidLevel] = []
+        level_camera = camera
+        for level in range(count):
+            if level > 0:
+                image = _half(image)
+                level_camera = dataclasses.replace(
+                    level_camera.scaled(0.5), width=image.shape[1], height=image.shape[0]
+                )
+            gx, gy = _gradients(image)
+            self.levels.append(PyramidLevel(level_camera, np.dstack([image, gx, gy]).astype(np.float32)))
+
+    def __len__(self) -> int:
+        return len(self.levels)
+
+    def __getitem__(self, level: int) -> PyramidLevel:
+        return self.levels[level]
+
+
+def to_level(uv: np.ndarray, level: int) -> np.ndarray:
+    """Level-0 pixels to pixels of ``level`` (pixel centres: u_l = (u + 0.5) / 2^l - 0.5)."""
+    return (np.asarray(uv, dtype=float) + 0.5) / (1 << level) - 0.5
