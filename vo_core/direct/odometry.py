@@ -1,0 +1,414 @@
+"""Direct sparse odometry, front end (DSO FullSystem without the windowed bundle adjustment).
+
+Per frame (FullSystem::addActiveFrame): build the pyramid; while not initialized, feed the initializer;
+afterwards track the frame against the newest keyframe trying DSO's motion hypotheses, trace the immature
+points of the keyframes in the window, and decide whether the frame becomes a keyframe. A new keyframe
+activates converged immature points of the window (their traced inverse depth is used as is: the window
+optimization of part 2 will refine it), selects its own immature points, and becomes the tracking
+reference with all active points of the window projected into it (DSO's coarse depth map).
+
+When no motion hypothesis tracks, the frame is reported as failed and the system reinitializes from that
+frame on, keeping the world frame: the new first keyframe takes the last good pose.
+
+Hooks for FDMO's system layer: ``newest_keyframe`` (image, pose, points of the keyframe just added),
+``last_tracking`` (the tracker's full result for the last frame), and ``track_with_prior`` (track a frame
+from a pose found elsewhere, e.g. by the feature-based recovery, then carry on as usual).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from vo_core.direct.affine import relative_affine
+from vo_core.direct.coarse_initializer import CoarseInitializer
+from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
+from vo_core.direct.config import DirectConfig
+from vo_core.direct.immature_point import ImmaturePoints
+from vo_core.direct.keyframe_policy import needs_keyframe
+from vo_core.direct.motion_model import motion_hypotheses
+from vo_core.direct.pixel_selector import PixelSelector
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.errors import InputError
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.init.result import InitializationResult
+
+INITIALIZERS = ("coarse",)
+INITIAL_LAST_RMSE = 100.0  # FullSystem: lastCoarseRMSE.setConstant(100)
+
+
+@dataclass
+class Keyframe:
+    """A direct keyframe: its image pyramid, pose, brightness, and the points it hosts."""
+
+    frame_index: int
+    timestamp: float
+    image: np.ndarray  # uint8, for the feature half
+    pyramid: ImagePyramid
+    T_world_cam: np.ndarray
+    affine: np.ndarray  # (a, b), DSO's aff_g2l
+    exposure: float | None
+    active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 host pixels
+    active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))  # inverse depths in the host
+    immature: ImmaturePoints | None = None
+
+    @property
+    def camera(self) -> PinholeCamera:
+        return self.pyramid[0].camera
+
+    def active_points_cam(self) -> np.ndarray:
+        """(N, 3) active points in this keyframe's camera frame."""
+        return self.camera.unproject(self.active_uv) / self.active_idepth[:, None]
+
+    def active_points_world(self) -> np.ndarray:
+        return transform_points(self.T_world_cam, self.active_points_cam())
+
+    def add_active(self, uv: np.ndarray, idepth: np.ndarray) -> None:
+        self.active_uv = np.concatenate([self.active_uv, uv])
+        self.active_idepth = np.concatenate([self.active_idepth, idepth])
+
+
+class _State(Enum):
+    INITIALIZING = "initializing"
+    TRACKING = "tracking"
+
+
+@dataclass
+class _Tracked:
+    """A tracked frame as the motion model needs it."""
+
+    T_world_cam: np.ndarray
+    affine: np.ndarray
+
+
+class DirectOdometry:
+    def __init__(self, config: DirectConfig, init_config, camera: PinholeCamera, seed: int):
+        if config.initializer not in INITIALIZERS:
+            raise InputError(
+                f"config key 'direct.initializer': {config.initializer!r} is not one of {', '.join(INITIALIZERS)}"
+            )
+        self.config = config
+        self.init_config = init_config
+        self.camera = camera
+        self.seed = seed
+        self.selector = PixelSelector(config.selector, seed)
+        self.tracker = CoarseTracker(config.tracker)
+        self.initializer = self._make_initializer()
+        self.state = _State.INITIALIZING
+        self.keyframes: list[Keyframe] = []  # the window, oldest first
+        self.keyframe_poses: dict[int, np.ndarray] = {}  # every keyframe ever, for viewers
+        self.history: list[_Tracked] = []  # tracked frames since (re)initialization, newest last
+        self.T_world_origin = np.eye(4)  # where the next initialization's first frame sits in the world
+        self.first_rmse = -1.0  # DSO's firstCoarseRMSE of the current reference
+        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
+        self.last_tracking: TrackingResult | None = None
+        self.initializer_frames = 0
+
+    @property
+    def newest_keyframe(self) -> Keyframe | None:
+        return self.keyframes[-1] if self.keyframes else None
+
+    def _make_initializer(self) -> CoarseInitializer:
+        c = self.config
+        return CoarseInitializer(
+            c.coarse_init, c.selector, c.tracker.huber_threshold, c.immature.outlier_threshold,
+            c.point_density, self.seed,
+        )
+
+    # ------------------------------------------------------------------------------------ per frame
+
+    def process(self, frame) -> FrameResult:
+        """Track one frame (or feed the initializer); never raises on bad tracking."""
+        return self._process(frame, prior=None)
+
+    def track_with_prior(self, frame, T_world_cam_prior: np.ndarray) -> FrameResult:
+        """Like ``process``, but tracking starts from ``T_world_cam_prior`` only (FDMO's recovered pose)."""
+        return self._process(frame, prior=T_world_cam_prior)
+
+    def _process(self, frame, prior: np.ndarray | None) -> FrameResult:
+        timings: dict[str, float] = {}
+        start = time.perf_counter()
+        pyramid = ImagePyramid(self._photometric_image(frame), self.camera, self.config.pyramid)
+        timings["pyramid"] = _ms_since(start)
+        result = FrameResult(frame.index, frame.timestamp, None, tracked=False, timings_ms=timings)
+        if self.state is _State.INITIALIZING:
+            self._initialize(frame, pyramid, result)
+        else:
+            self._track(frame, pyramid, result, prior)
+        result.timings_ms["total"] = _ms_since(start)
+        return result
+
+    def _photometric_image(self, frame) -> np.ndarray:
+        irradiance = getattr(frame, "irradiance", None)
+        image = irradiance if irradiance is not None else frame.image
+        if image.shape[:2] != (self.camera.height, self.camera.width):
+            raise InputError(
+                f"frame {frame.index}: image is {image.shape[1]}x{image.shape[0]}, "
+                f"the camera is {self.camera.width}x{self.camera.height}"
+            )
+        return image
+
+    # ------------------------------------------------------------------------------------ initialization
+
+    def _initialize(self, frame, pyramid: ImagePyramid, result: FrameResult) -> None:
+        start = time.perf_counter()
+        exposure = getattr(frame, "exposure_ms", None)
+        if not self.initializer.started:
+            self.initializer.set_first(frame.index, pyramid, exposure)
+            self._first_frame = (frame, pyramid)
+            self.initializer_frames = 0
+            result.events.append(_event(EventKind.INITIALIZATION_STARTED, frame, {"method": self.config.initializer}))
+            result.timings_ms["initializer"] = _ms_since(start)
+            return
+        outcome = self.initializer.track(frame.index, pyramid, exposure)
+        self.initializer_frames += 1
+        result.timings_ms["initializer"] = _ms_since(start)
+        if outcome is None:
+            if self.initializer_frames >= self.config.coarse_init.max_frames:
+                # Too long without enough baseline or texture: start over from this frame.
+                result.events.append(
+                    _event(EventKind.INITIALIZATION_FAILED, frame, {"frames": self.initializer_frames})
+                )
+                self.initializer = self._make_initializer()
+                self._initialize(frame, pyramid, result)
+            return
+        self._start_from_initialization(frame, pyramid, outcome, result)
+
+    def _start_from_initialization(self, frame, pyramid, outcome: InitializationResult, result: FrameResult):
+        """initializeFromInitializer: the first frame with the initializer's points, the current frame as KF."""
+        start = time.perf_counter()
+        first_frame, first_pyramid = self._first_frame
+        first = Keyframe(
+            first_frame.index, first_frame.timestamp, first_frame.image, first_pyramid, self.T_world_origin.copy(),
+            np.zeros(2), getattr(first_frame, "exposure_ms", None),
+        )
+        first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
+        self.keyframes = [first]
+        self.keyframe_poses[first.frame_index] = first.T_world_cam
+        T_world_cam = first.T_world_cam @ outcome.T_first_second
+        self.history = [_Tracked(first.T_world_cam, np.zeros(2)), _Tracked(T_world_cam, np.zeros(2))]
+        self.state = _State.TRACKING
+        self.initializer = self._make_initializer()
+        result.T_world_cam = T_world_cam
+        result.tracked = True
+        result.events.append(
+            _event(
+                EventKind.INITIALIZATION_SUCCEEDED, frame,
+                {**outcome.details, "first_frame": first.frame_index, "first_T_world_cam": first.T_world_cam.tolist()},
+            )
+        )
+        self._add_keyframe(frame, pyramid, T_world_cam, np.zeros(2), result)
+        result.timings_ms["keyframe"] = _ms_since(start)
+
+    # ------------------------------------------------------------------------------------ tracking
+
+    def _track(self, frame, pyramid: ImagePyramid, result: FrameResult, prior: np.ndarray | None) -> None:
+        start = time.perf_counter()
+        reference = self.newest_keyframe
+        exposure = getattr(frame, "exposure_ms", None)
+        if prior is not None:
+            hypotheses = [se3_inverse(prior) @ reference.T_world_cam]
+        else:
+            previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
+            hypotheses = motion_hypotheses(
+                previous2, self.history[-1].T_world_cam, reference.T_world_cam,
+                self.config.tracker.rotation_perturbation,
+            )
+        tracking = self._best_hypothesis(pyramid, hypotheses, self.history[-1].affine, exposure)
+        result.timings_ms["track"] = _ms_since(start)
+        self.last_tracking = tracking
+        if tracking is None or not tracking.success:
+            self._fail(frame, pyramid, result, tracking)
+            return
+        T_world_cam = reference.T_world_cam @ se3_inverse(tracking.T_frame_ref)
+        result.T_world_cam = T_world_cam
+        result.tracked = True
+        result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
+        result.num_inliers = tracking.num_terms
+        result.points_2d = self._visible(self.tracker.project_points(tracking.T_frame_ref))
+        self.history = self.history[-1:] + [_Tracked(T_world_cam, tracking.affine)]
+        if self.first_rmse < 0:
+            self.first_rmse = tracking.rmse_after
+
+        start = time.perf_counter()
+        self._trace(pyramid, T_world_cam, tracking.affine, exposure)
+        result.timings_ms["trace"] = _ms_since(start)
+        factor, _ = relative_affine(reference.exposure, exposure, reference.affine, tracking.affine)
+        if needs_keyframe(
+            tracking.flow, factor, tracking.rmse_after, self.first_rmse, self.camera.width, self.camera.height,
+            self.config.keyframes,
+        ):
+            start = time.perf_counter()
+            self._add_keyframe(frame, pyramid, T_world_cam, tracking.affine, result)
+            result.timings_ms["keyframe"] = _ms_since(start)
+
+    def _best_hypothesis(self, pyramid, hypotheses, affine, exposure) -> TrackingResult | None:
+        """trackNewCoarse: try guesses in order, keep the best finest-level RMSE, stop when good enough."""
+        config = self.config.tracker
+        levels = min(len(pyramid), len(self.tracker.levels))
+        achieved = np.full(levels, np.nan)
+        best: TrackingResult | None = None
+        for T_frame_ref in hypotheses:
+            tracking = self.tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
+            rmse = tracking.rmse_per_level
+            if tracking.success and np.isfinite(rmse[0]) and not (best is not None and rmse[0] >= best.rmse_per_level[0]):
+                best = tracking
+            if best is not None:
+                # Later guesses must beat the best RMSE reached so far on every level, or they are cut short.
+                better = ~np.isfinite(achieved) | (achieved > rmse[:levels])
+                achieved = np.where(better & np.isfinite(rmse[:levels]), rmse[:levels], achieved)
+                if achieved[0] < self.last_rmse[0] * config.retrack_threshold:
+                    break
+        self.last_rmse = achieved
+        return best
+
+    def _fail(self, frame, pyramid, result: FrameResult, tracking: TrackingResult | None) -> None:
+        """Report the failure and reinitialize from this frame, keeping the last good pose as origin."""
+        details = {"reason": "no motion hypothesis converged", "reference_keyframe": self.newest_keyframe.frame_index}
+        if tracking is not None:
+            details.update(rmse_before=tracking.rmse_before, rmse_after=tracking.rmse_after)
+            result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
+        result.events.append(_event(EventKind.TRACKING_FAILED, frame, details))
+        self.T_world_origin = self.history[-1].T_world_cam.copy()
+        result.events.append(
+            _event(EventKind.REINITIALIZATION, frame, {"origin_from_frame_pose": self.T_world_origin.tolist()})
+        )
+        self.reset()
+        self._initialize(frame, pyramid, result)
+
+    def reset(self) -> None:
+        """Forget the map and start initializing again (the world origin is kept)."""
+        self.state = _State.INITIALIZING
+        self.keyframes = []
+        self.history = []
+        self.initializer = self._make_initializer()
+        self.first_rmse = -1.0
+        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+
+    # ------------------------------------------------------------------------------------ points
+
+    def _trace(self, pyramid: ImagePyramid, T_world_cam: np.ndarray, affine: np.ndarray, exposure) -> None:
+        """traceNewCoarse: every window keyframe's immature points along their epipolar lines in this frame."""
+        T_cam_world = se3_inverse(T_world_cam)
+        for keyframe in self.keyframes:
+            if keyframe.immature is None or len(keyframe.immature) == 0:
+                continue
+            transfer = relative_affine(keyframe.exposure, exposure, keyframe.affine, affine)
+            keyframe.immature.trace(pyramid[0], T_cam_world @ keyframe.T_world_cam, transfer, self.config.immature)
+
+    def _add_keyframe(self, frame, pyramid, T_world_cam: np.ndarray, affine: np.ndarray, result: FrameResult) -> None:
+        """makeKeyFrame without the window optimization: activate, slide the window, select, new reference."""
+        keyframe = Keyframe(
+            frame.index, frame.timestamp, frame.image, pyramid, T_world_cam.copy(), np.asarray(affine, float).copy(),
+            getattr(frame, "exposure_ms", None),
+        )
+        activated = self._activate_points(keyframe)
+        self.keyframes.append(keyframe)
+        dropped = self.keyframes[: -self.config.window_keyframes]
+        self.keyframes = self.keyframes[-self.config.window_keyframes :]
+        selection = self.selector.select(pyramid, self.config.immature.density)
+        keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
+        self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
+        self._set_tracking_reference(keyframe)
+        result.is_keyframe = True
+        result.events.append(
+            _event(
+                EventKind.KEYFRAME_ADDED, frame,
+                {
+                    "keyframe": keyframe.frame_index,
+                    "window": [k.frame_index for k in self.keyframes],
+                    "dropped": [k.frame_index for k in dropped],
+                    "activated_points": activated,
+                    "reference_points": self.tracker.num_points,
+                    "immature_points": len(keyframe.immature),
+                },
+            )
+        )
+
+    def _activate_points(self, new_keyframe: Keyframe) -> int:
+        """activatePointsMT: converged immature points become active where the new keyframe has room.
+
+        Room is judged on a grid in the new keyframe whose cell size yields ``point_density`` cells (DSO's
+        distance map with currentMinActDist): one point per cell, existing active points first."""
+        camera = self.camera
+        cell = max(np.sqrt(camera.width * camera.height / self.config.point_density), 1.0)
+        grid_w = int(np.ceil(camera.width / cell))
+        occupied = np.zeros(int(np.ceil(camera.height / cell)) * grid_w, dtype=bool)
+        T_new_world = se3_inverse(new_keyframe.T_world_cam)
+
+        def cells_of(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            points = transform_points(T_new_world, points_world)
+            front = points[:, 2] > 0
+            uv = np.full((len(points), 2), -1.0)
+            uv[front] = camera.project(points[front])
+            inside = front & camera.in_image(uv)
+            index = (uv[:, 1] // cell).astype(int) * grid_w + (uv[:, 0] // cell).astype(int)
+            return np.where(inside, index, -1), inside
+
+        for keyframe in self.keyframes:
+            if len(keyframe.active_idepth):
+                index, inside = cells_of(keyframe.active_points_world())
+                occupied[index[inside]] = True
+        activated = 0
+        for keyframe in self.keyframes:
+            immature = keyframe.immature
+            if immature is None or len(immature) == 0:
+                continue
+            ready = immature.activatable(self.config.immature)
+            candidates = np.flatnonzero(ready)
+            points_cam = camera.unproject(immature.uv[candidates]) / immature.idepth[candidates, None]
+            index, inside = cells_of(transform_points(keyframe.T_world_cam, points_cam))
+            # First candidate per free cell (np.unique returns first occurrences).
+            free = inside & ~occupied[np.maximum(index, 0)]
+            _, first = np.unique(index[free], return_index=True)
+            chosen = candidates[np.flatnonzero(free)[first]]
+            occupied[index[np.flatnonzero(free)[first]]] = True
+            keyframe.add_active(immature.uv[chosen], immature.idepth[chosen])
+            activated += len(chosen)
+            # Activated points leave the immature set; so do hopeless ones and those that can no longer converge.
+            remove = immature.hopeless()
+            remove[chosen] = True
+            keyframe.immature = immature.subset(~remove)
+        return activated
+
+    def _set_tracking_reference(self, keyframe: Keyframe) -> None:
+        """All active points of the window, projected into the new keyframe (makeCoarseDepthL0)."""
+        T_cam_world = se3_inverse(keyframe.T_world_cam)
+        points = [transform_points(T_cam_world, k.active_points_world()) for k in self.keyframes if len(k.active_idepth)]
+        points = np.concatenate(points) if points else np.zeros((0, 3))
+        front = points[:, 2] > 0
+        points = points[front]
+        uv = self.camera.project(points)
+        inside = self.camera.in_image(uv)
+        self.tracker.set_reference(keyframe.pyramid, uv[inside], 1.0 / points[inside, 2], keyframe.affine, keyframe.exposure)
+        self.first_rmse = -1.0
+
+    def _visible(self, uv: np.ndarray) -> np.ndarray:
+        return uv[self.camera.in_image(uv)]
+
+    # ------------------------------------------------------------------------------------ map
+
+    def map_snapshot(self) -> MapSnapshot:
+        points, idepths = [], []
+        for keyframe in self.keyframes:
+            if len(keyframe.active_idepth):
+                points.append(keyframe.active_points_world())
+                idepths.append(keyframe.active_idepth)
+        return MapSnapshot(
+            direct_points_world=np.concatenate(points) if points else np.zeros((0, 3)),
+            direct_inverse_depths=np.concatenate(idepths) if idepths else np.zeros(0),
+            keyframe_poses=dict(self.keyframe_poses),
+        )
+
+
+def _ms_since(start: float) -> float:
+    return (time.perf_counter() - start) * 1000.0
+
+
+def _event(kind: EventKind, frame, details: dict) -> Event:
+    return Event(kind, frame.index, float(frame.timestamp), details)
