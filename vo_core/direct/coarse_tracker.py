@@ -70,6 +70,15 @@ class TrackingResult:
     num_terms: int  # residual terms used at the finest level
 
 
+def orthonormalized(T: np.ndarray) -> np.ndarray:
+    """T with its rotation projected back onto SO(3): composing guesses from poses amplifies rounding
+    (the constant-velocity guess multiplies three of them every frame), so each start is cleaned."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=float)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return out
+
+
 def huber_weight(residual: np.ndarray, threshold: float) -> np.ndarray:
     """w = 1 inside the threshold, k/|r| outside; energy w r^2 (2 - w) is the Huber cost times 2."""
     absolute = np.abs(residual)
@@ -270,7 +279,7 @@ class CoarseTracker:
         num_levels = min(len(frame), len(self.levels))
         coarsest = num_levels - 1 if coarsest_level is None else min(coarsest_level, num_levels - 1)
         abort = np.full(num_levels, np.nan) if max_rmse_for_abort is None else np.asarray(max_rmse_for_abort)
-        T = np.array(T_frame_ref, dtype=float)
+        T = orthonormalized(T_frame_ref)
         ab = np.array(affine, dtype=float)
         rmse_before = self.rmse(frame, T, ab, exposure, level=0)
         rmse_levels = np.full(num_levels, np.nan)

@@ -74,6 +74,12 @@ class KeyframeConfig:
     max_shift_weight_rt: float = 0.02 * (640 + 480)  # setting_maxShiftWeightRT
     max_affine_weight: float = 2.0  # setting_maxAffineWeight
     rmse_growth: float = 2.0  # new keyframe when RMSE > 2 x the first RMSE against this keyframe
+    # Which keyframes leave the window (FullSystem::flagFramesForMarginalization).
+    min_frames: int = 5  # setting_minFrames
+    max_frames: int = 7  # setting_maxFrames
+    min_points_remaining: float = 0.05  # setting_minPointsRemaining: drop a keyframe with < 5% points in view
+    max_log_affine_in_window: float = 0.7  # setting_maxLogAffFacInWindow
+    min_frame_age: int = 1  # setting_minFrameAge
 
 
 @dataclass
@@ -98,6 +104,12 @@ class ImmatureConfig:
     max_scale_change: float = 1.5
     max_steps: int = 100  # traceOn: errors[100]
     border: float = 4.0  # traceOn: projections must stay 4 px inside the image
+    # Activation (FullSystem::optimizeImmaturePoint): a few Gauss-Newton steps on the inverse depth against
+    # every other keyframe of the window before the point is used.
+    activation_gn_iterations: int = 3  # setting_GNItsOnPointActivation
+    min_idepth_hessian: float = 100.0  # setting_minIdepthH_act
+    activation_min_observations: int = 1  # activatePointsMT: optimizeImmaturePoint(..., minObs = 1, ...)
+    first_outlier_slack: float = 1000.0  # optimizeImmaturePoint: first linearization with outlierTHSlack 1000
 
 
 @dataclass
@@ -126,7 +138,6 @@ class InitializerConfig:
 class DirectConfig:
     initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
-    window_keyframes: int = 7  # setting_maxFrames: keyframes whose points feed the tracker
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     selector: SelectorConfig = field(default_factory=SelectorConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)

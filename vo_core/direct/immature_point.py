@@ -281,3 +281,83 @@ class ImmaturePoints:
             best_energy[br] = energy[~worse]
             running[r] = np.abs(step_back[r]) >= config.trace_gn_threshold
         return best_u, best_v, best_energy
+
+
+@dataclass
+class ActivationTarget:
+    """Another keyframe of the window as seen from the host: its level 0, pose and brightness transfer."""
+
+    level: PyramidLevel
+    T_target_host: np.ndarray
+    affine: tuple[float, float]  # (factor, offset) predicting target intensities from host intensities
+
+
+def optimize_for_activation(
+    points: ImmaturePoints, index: np.ndarray, targets: list[ActivationTarget], config: ImmatureConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """optimizeImmaturePoint for the points ``index``: LM on each inverse depth over all ``targets``.
+
+    Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
+    ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
+    idepth = points.idepth[index].copy()
+    n = len(index)
+    if n == 0 or not targets:
+        return idepth, np.zeros(n, dtype=bool)
+    in_bounds = np.ones((n, len(targets)), dtype=bool)  # a target once out of bounds stays out (ResState OOB)
+    energy, H, b, inlier = _activation_system(points, index, targets, idepth, in_bounds, config.first_outlier_slack, config)
+    usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
+    lam = np.full(n, 0.1)
+    running = usable.copy()
+    for _ in range(config.activation_gn_iterations):
+        if not np.any(running):
+            break
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(running, b / (H * (1.0 + lam)), 0.0)
+        trial = idepth - step
+        e_new, H_new, b_new, inl_new = _activation_system(points, index, targets, trial, in_bounds, 1.0, config)
+        usable &= ~running | (H_new >= config.min_idepth_hessian)
+        accept = running & (e_new < energy)
+        idepth = np.where(accept, trial, idepth)
+        energy, H, b = np.where(accept, e_new, energy), np.where(accept, H_new, H), np.where(accept, b_new, b)
+        inlier = np.where(accept[:, None], inl_new, inlier)
+        lam = np.where(accept, lam * 0.5, lam * 5.0)
+        running &= usable & ~(np.abs(step) < 1e-4 * np.abs(idepth))
+    usable &= np.isfinite(idepth) & (idepth > 0) & (inlier.sum(axis=1) >= config.activation_min_observations)
+    return idepth, usable
+
+
+def _activation_system(points, index, targets, idepth, in_bounds, outlier_slack, config):
+    """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target."""
+    n = len(index)
+    energy, H, b = np.zeros(n), np.zeros(n), np.zeros(n)
+    inlier = np.zeros((n, len(targets)), dtype=bool)
+    host_uv = points.uv[index][:, None, :] + PATTERN[None]  # (n, 8, 2)
+    weight_sq = points.weight[index] ** 2
+    threshold = points.energy_threshold[index] * outlier_slack
+    for j, target in enumerate(targets):
+        camera = target.level.camera
+        rays = camera.unproject(host_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
+        R, t = target.T_target_host[:3, :3], target.T_target_host[:3, 3]
+        warped = rays @ R.T + idepth[:, None, None] * t
+        z = warped[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = warped[..., 0] / z, warped[..., 1] / z
+        Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
+        inside = camera.in_image(np.stack([Ku.ravel(), Kv.ravel()], 1), border=1.0).reshape(n, -1) & (z > 0)
+        hit = target.level.sample(np.where(inside, Ku, -10.0), np.where(inside, Kv, -10.0))
+        ok = in_bounds[:, j] & np.all(inside & np.isfinite(hit[..., 0]), axis=1)
+        in_bounds[:, j] = ok
+        factor, offset = target.affine
+        residual = np.nan_to_num(hit[..., 0] - (factor * points.color[index] + offset))
+        w = huber_weight(residual, config.huber_threshold)
+        e = np.sum(weight_sq * w * residual**2 * (2.0 - w), axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d_idepth = np.nan_to_num(
+                hit[..., 1] * camera.fx * (t[0] - t[2] * u) / z + hit[..., 2] * camera.fy * (t[1] - t[2] * v) / z
+            )
+        hw = w * weight_sq
+        H += np.where(ok, np.sum(hw * d_idepth**2, axis=1), 0.0)
+        b += np.where(ok, np.sum(hw * residual * d_idepth, axis=1), 0.0)
+        inlier[:, j] = ok & (e <= threshold)
+        energy += np.where(ok, np.minimum(e, threshold), 0.0)
+    return energy, H, b, inlier

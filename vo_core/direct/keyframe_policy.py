@@ -40,3 +40,41 @@ def needs_keyframe(
         keyframe_score(flow, brightness_factor, width, height, config) > 1.0
         or config.rmse_growth * first_rmse < rmse
     )
+
+
+def keyframes_to_marginalize(
+    keyframe_ids: np.ndarray,
+    positions: np.ndarray,
+    in_view_fraction: np.ndarray,
+    log_brightness: np.ndarray,
+    config: KeyframeConfig,
+) -> list[int]:
+    """FullSystem::flagFramesForMarginalization over the window before the new keyframe joins it.
+
+    ``keyframe_ids`` count keyframes since initialization (0 = the first, which only leaves when out of
+    view), ``positions`` are camera centres, ``in_view_fraction`` the share of each keyframe's points still
+    in view and ``log_brightness`` |log| of the brightness factor to the newest frame. Returns window
+    positions to drop: keyframes out of view or too differently exposed, then, while the window is full, the
+    one with DSO's best distance score (far from the newest keyframe, close to the others)."""
+    count = len(keyframe_ids)
+    flagged: list[int] = []
+    for i in range(count):
+        lost = in_view_fraction[i] < config.min_points_remaining or log_brightness[i] > config.max_log_affine_in_window
+        if lost and count - len(flagged) > config.min_frames:
+            flagged.append(i)
+    if count - len(flagged) >= config.max_frames:
+        latest = keyframe_ids[-1]
+        best_score, chosen = 1.0, None
+        for i in range(count):
+            if i in flagged or keyframe_ids[i] > latest - config.min_frame_age or keyframe_ids[i] == 0:
+                continue
+            others = [
+                j for j in range(count) if j != i and keyframe_ids[j] <= latest - config.min_frame_age + 1
+            ]
+            distances = np.linalg.norm(positions[others] - positions[i], axis=1)
+            score = -np.sum(1.0 / (1e-5 + distances)) * np.sqrt(np.linalg.norm(positions[-1] - positions[i]))
+            if score < best_score:
+                best_score, chosen = score, i
+        if chosen is not None:
+            flagged.append(chosen)
+    return sorted(flagged)

@@ -27,8 +27,8 @@ from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_initializer import CoarseInitializer
 from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.immature_point import ImmaturePoints
-from vo_core.direct.keyframe_policy import needs_keyframe
+from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
+from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
@@ -53,6 +53,7 @@ class Keyframe:
     T_world_cam: np.ndarray
     affine: np.ndarray  # (a, b), DSO's aff_g2l
     exposure: float | None
+    keyframe_id: int = 0  # keyframes since initialization (DSO's frameID; the first is 0)
     active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 host pixels
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))  # inverse depths in the host
     immature: ImmaturePoints | None = None
@@ -219,16 +220,17 @@ class DirectOdometry:
                 previous2, self.history[-1].T_world_cam, reference.T_world_cam,
                 self.config.tracker.rotation_perturbation,
             )
-        tracking = self._best_hypothesis(pyramid, hypotheses, self.history[-1].affine, exposure)
+        tracking, prior_rmse = self._best_hypothesis(pyramid, hypotheses, self.history[-1].affine, exposure)
         result.timings_ms["track"] = _ms_since(start)
         self.last_tracking = tracking
         if tracking is None or not tracking.success:
-            self._fail(frame, pyramid, result, tracking)
+            self._fail(frame, pyramid, result, prior_rmse)
             return
         T_world_cam = reference.T_world_cam @ se3_inverse(tracking.T_frame_ref)
         result.T_world_cam = T_world_cam
         result.tracked = True
-        result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
+        # FDMO's divergence test compares the RMSE at the motion prior with the RMSE reached.
+        result.rmse_before, result.rmse_after = prior_rmse, tracking.rmse_after
         result.num_inliers = tracking.num_terms
         result.points_2d = self._visible(self.tracker.project_points(tracking.T_frame_ref))
         self.history = self.history[-1:] + [_Tracked(T_world_cam, tracking.affine)]
@@ -247,14 +249,19 @@ class DirectOdometry:
             self._add_keyframe(frame, pyramid, T_world_cam, tracking.affine, result)
             result.timings_ms["keyframe"] = _ms_since(start)
 
-    def _best_hypothesis(self, pyramid, hypotheses, affine, exposure) -> TrackingResult | None:
-        """trackNewCoarse: try guesses in order, keep the best finest-level RMSE, stop when good enough."""
+    def _best_hypothesis(self, pyramid, hypotheses, affine, exposure) -> tuple[TrackingResult | None, float]:
+        """trackNewCoarse: try guesses in order, keep the best finest-level RMSE, stop when good enough.
+
+        Returns the best result (None if none succeeded) and the RMSE at the first guess, the motion prior."""
         config = self.config.tracker
         levels = min(len(pyramid), len(self.tracker.levels))
         achieved = np.full(levels, np.nan)
         best: TrackingResult | None = None
-        for T_frame_ref in hypotheses:
+        prior_rmse = float("nan")
+        for attempt, T_frame_ref in enumerate(hypotheses):
             tracking = self.tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
+            if attempt == 0:
+                prior_rmse = tracking.rmse_before
             rmse = tracking.rmse_per_level
             if tracking.success and np.isfinite(rmse[0]) and not (best is not None and rmse[0] >= best.rmse_per_level[0]):
                 best = tracking
@@ -265,14 +272,16 @@ class DirectOdometry:
                 if achieved[0] < self.last_rmse[0] * config.retrack_threshold:
                     break
         self.last_rmse = achieved
-        return best
+        return best, prior_rmse
 
-    def _fail(self, frame, pyramid, result: FrameResult, tracking: TrackingResult | None) -> None:
+    def _fail(self, frame, pyramid, result: FrameResult, prior_rmse: float) -> None:
         """Report the failure and reinitialize from this frame, keeping the last good pose as origin."""
-        details = {"reason": "no motion hypothesis converged", "reference_keyframe": self.newest_keyframe.frame_index}
-        if tracking is not None:
-            details.update(rmse_before=tracking.rmse_before, rmse_after=tracking.rmse_after)
-            result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
+        result.rmse_before = prior_rmse
+        details = {
+            "reason": "no motion hypothesis converged",
+            "reference_keyframe": self.newest_keyframe.frame_index,
+            "rmse_before": prior_rmse,
+        }
         result.events.append(_event(EventKind.TRACKING_FAILED, frame, details))
         self.T_world_origin = self.history[-1].T_world_cam.copy()
         result.events.append(
@@ -302,15 +311,15 @@ class DirectOdometry:
             keyframe.immature.trace(pyramid[0], T_cam_world @ keyframe.T_world_cam, transfer, self.config.immature)
 
     def _add_keyframe(self, frame, pyramid, T_world_cam: np.ndarray, affine: np.ndarray, result: FrameResult) -> None:
-        """makeKeyFrame without the window optimization: activate, slide the window, select, new reference."""
+        """makeKeyFrame without the window optimization: slide the window, activate, select, new reference."""
         keyframe = Keyframe(
             frame.index, frame.timestamp, frame.image, pyramid, T_world_cam.copy(), np.asarray(affine, float).copy(),
             getattr(frame, "exposure_ms", None),
+            keyframe_id=self.keyframes[-1].keyframe_id + 1 if self.keyframes else 0,
         )
+        dropped = self._slide_window(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
-        dropped = self.keyframes[: -self.config.window_keyframes]
-        self.keyframes = self.keyframes[-self.config.window_keyframes :]
         selection = self.selector.select(pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
@@ -322,13 +331,51 @@ class DirectOdometry:
                 {
                     "keyframe": keyframe.frame_index,
                     "window": [k.frame_index for k in self.keyframes],
-                    "dropped": [k.frame_index for k in dropped],
+                    "dropped": dropped,
                     "activated_points": activated,
                     "reference_points": self.tracker.num_points,
                     "immature_points": len(keyframe.immature),
                 },
             )
         )
+
+    def _slide_window(self, new_keyframe: Keyframe) -> list[int]:
+        """Drop the keyframes DSO would marginalize (their points leave the tracking reference)."""
+        if not self.keyframes:
+            return []
+        in_view = np.array([self._fraction_in_view(k, new_keyframe) for k in self.keyframes])
+        log_brightness = np.array(
+            [
+                abs(np.log(relative_affine(new_keyframe.exposure, k.exposure, new_keyframe.affine, k.affine)[0]))
+                for k in self.keyframes
+            ]
+        )
+        drop = keyframes_to_marginalize(
+            np.array([k.keyframe_id for k in self.keyframes]),
+            np.array([k.T_world_cam[:3, 3] for k in self.keyframes]),
+            in_view, log_brightness, self.config.keyframes,
+        )
+        dropped = [self.keyframes[i].frame_index for i in drop]
+        self.keyframes = [k for i, k in enumerate(self.keyframes) if i not in drop]
+        return dropped
+
+    def _fraction_in_view(self, keyframe: Keyframe, viewer: Keyframe) -> float:
+        """Share of the keyframe's active and immature points that project into ``viewer``."""
+        uv = keyframe.active_uv
+        idepth = keyframe.active_idepth
+        if keyframe.immature is not None and len(keyframe.immature):
+            traced = np.isfinite(keyframe.immature.idepth_max)
+            uv = np.concatenate([uv, keyframe.immature.uv[traced]])
+            idepth = np.concatenate([idepth, keyframe.immature.idepth[traced]])
+        if len(idepth) == 0:
+            return 1.0
+        points = keyframe.camera.unproject(uv) / np.maximum(idepth, 1e-6)[:, None]
+        T_viewer_kf = se3_inverse(viewer.T_world_cam) @ keyframe.T_world_cam
+        in_viewer = transform_points(T_viewer_kf, points)
+        front = in_viewer[:, 2] > 0
+        visible = np.zeros(len(points), dtype=bool)
+        visible[front] = self.camera.in_image(self.camera.project(in_viewer[front]))
+        return float(visible.mean())
 
     def _activate_points(self, new_keyframe: Keyframe) -> int:
         """activatePointsMT: converged immature points become active where the new keyframe has room.
@@ -368,13 +415,29 @@ class DirectOdometry:
             _, first = np.unique(index[free], return_index=True)
             chosen = candidates[np.flatnonzero(free)[first]]
             occupied[index[np.flatnonzero(free)[first]]] = True
-            keyframe.add_active(immature.uv[chosen], immature.idepth[chosen])
-            activated += len(chosen)
-            # Activated points leave the immature set; so do hopeless ones and those that can no longer converge.
+            idepth, usable = optimize_for_activation(
+                immature, chosen, self._activation_targets(keyframe, new_keyframe), self.config.immature
+            )
+            keyframe.add_active(immature.uv[chosen[usable]], idepth[usable])
+            activated += int(usable.sum())
+            # Activated points leave the immature set; so do those that failed and the hopeless ones.
             remove = immature.hopeless()
             remove[chosen] = True
             keyframe.immature = immature.subset(~remove)
         return activated
+
+    def _activation_targets(self, host: Keyframe, new_keyframe: Keyframe) -> list[ActivationTarget]:
+        """Every other keyframe of the window, the new one included, as seen from ``host``."""
+        targets = []
+        for target in [k for k in self.keyframes if k is not host] + [new_keyframe]:
+            targets.append(
+                ActivationTarget(
+                    target.pyramid[0],
+                    se3_inverse(target.T_world_cam) @ host.T_world_cam,
+                    relative_affine(host.exposure, target.exposure, host.affine, target.affine),
+                )
+            )
+        return targets
 
     def _set_tracking_reference(self, keyframe: Keyframe) -> None:
         """All active points of the window, projected into the new keyframe (makeCoarseDepthL0)."""

@@ -1,0 +1,113 @@
+"""The coarse tracker, pixel selector and immature points on a rendered scene with known depth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_direct_support import PlaneScene, pose, small_camera
+from vo_core.direct.config import DirectConfig
+from vo_core.direct.coarse_tracker import CoarseTracker
+from vo_core.direct.immature_point import ImmaturePoints
+from vo_core.direct.pixel_selector import PixelSelector
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log
+
+CONFIG = DirectConfig()
+GAIN, OFFSET = 1.1, 5.0  # brightness change of the second image
+
+
+@pytest.fixture(scope="module")
+def pair():
+    """Reference and current images (with a brightness change), reference depth, true T_cur_ref."""
+    camera = small_camera(320, 240)
+    scene = PlaneScene(seed=1)
+    T_world_ref = pose()
+    T_world_cur = pose((0.01, -0.02, 0.005), (0.08, -0.03, 0.05))
+    image_ref, depth_ref = scene.render(camera, T_world_ref)
+    image_cur, _ = scene.render(camera, T_world_cur, gain=GAIN, offset=OFFSET)
+    return (
+        camera,
+        ImagePyramid(image_ref, camera, CONFIG.pyramid),
+        ImagePyramid(image_cur, camera, CONFIG.pyramid),
+        depth_ref,
+        se3_inverse(T_world_cur) @ T_world_ref,
+    )
+
+
+@pytest.fixture(scope="module")
+def tracker(pair):
+    _, reference, _, depth, _ = pair
+    selection = PixelSelector(CONFIG.selector, seed=0).select(reference, 2000)
+    tracker = CoarseTracker(CONFIG.tracker)
+    idepth = 1.0 / depth[selection.uv[:, 1], selection.uv[:, 0]]
+    tracker.set_reference(reference, selection.uv, idepth, np.zeros(2), None)
+    return tracker
+
+
+def test_tracking_recovers_pose_and_brightness_from_a_few_pixels_off(pair, tracker):
+    _, _, current, _, T_true = pair
+    # About 3 px of rotation and 2 px of translation flow away from the truth.
+    start = se3_exp(np.array([0.02, -0.01, 0.01, 0.004, 0.008, 0.0])) @ T_true
+    result = tracker.track(current, start, np.zeros(2), None)
+    error = se3_log(result.T_frame_ref @ se3_inverse(T_true))
+    assert result.success
+    assert np.linalg.norm(error[:3]) < 2e-3  # metres, scene at 1-4 m
+    assert np.linalg.norm(error[3:]) < 5e-4  # radians
+    # I_cur = e^a I_ref + b: the predicted intensities match the applied gain and offset.
+    gain, offset = np.exp(result.affine[0]), result.affine[1]
+    for intensity in (60.0, 128.0, 200.0):
+        assert gain * intensity + offset == pytest.approx(GAIN * intensity + OFFSET, abs=2.0)
+    assert result.rmse_after < 0.3 * result.rmse_before
+
+
+def test_tracking_from_far_off_fails_detectably(pair, tracker):
+    _, _, current, _, T_true = pair
+    good = tracker.track(current, T_true, np.zeros(2), None)
+    far = tracker.track(current, se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 0.35, 0.0])) @ T_true, np.zeros(2), None)
+    # Converged: the error drops to the noise level. From 20 degrees off: no real improvement.
+    assert good.success and good.rmse_after < 0.5 * good.rmse_before  # here the brightness change dominates "before"
+    assert not far.success or far.rmse_after > 0.6 * far.rmse_before
+    assert not far.success or far.rmse_after > 3.0 * good.rmse_after
+
+
+@pytest.mark.parametrize("density", [500, 1000, 2000])
+def test_pixel_selection_reaches_the_requested_density(pair, density):
+    _, reference, _, _, _ = pair
+    selector = PixelSelector(CONFIG.selector, seed=0)
+    counts = [len(selector.select(reference, density).uv) for _ in range(2)]  # the cell size adapts
+    assert counts[-1] == pytest.approx(density, rel=0.15)
+    selection = selector.select(reference, density)
+    h, w = reference[0].intensity.shape
+    assert np.all((selection.uv >= 4) & (selection.uv < [w - 4, h - 4]))
+    assert len(np.unique(selection.uv, axis=0)) == len(selection.uv)
+
+
+def test_pixel_selection_spreads_over_the_image(pair):
+    _, reference, _, _, _ = pair
+    selection = PixelSelector(CONFIG.selector, seed=0).select(reference, 1000)
+    h, w = reference[0].intensity.shape
+    occupied = np.unique((selection.uv[:, 1] * 4 // h) * 4 + selection.uv[:, 0] * 4 // w)
+    assert len(occupied) == 16  # every cell of a 4x4 grid has points
+
+
+def test_immature_point_depths_converge_to_the_truth():
+    camera = small_camera(320, 240)
+    scene = PlaneScene(seed=1)
+    image, depth = scene.render(camera, pose())
+    host = ImagePyramid(image, camera, CONFIG.pyramid)
+    selection = PixelSelector(CONFIG.selector, seed=0).select(host, 1000)
+    points = ImmaturePoints.create(host, selection.uv, selection.kind, CONFIG.immature)
+    true_idepth = 1.0 / depth[points.uv[:, 1].astype(int), points.uv[:, 0].astype(int)]
+    for i in range(1, 6):
+        T_world_frame = pose((0.0, 0.003 * i, 0.0), (0.03 * i, 0.005 * i, 0.01 * i))
+        frame = ImagePyramid(scene.render(camera, T_world_frame)[0], camera, CONFIG.pyramid)
+        points.trace(frame[0], se3_inverse(T_world_frame), (1.0, 0.0), CONFIG.immature)
+    ready = points.activatable(CONFIG.immature)
+    relative_error = np.abs(points.idepth[ready] - true_idepth[ready]) / true_idepth[ready]
+    assert ready.sum() > 0.5 * len(points)
+    assert np.median(relative_error) < 0.01
+    assert np.percentile(relative_error, 90) < 0.05
+    # The truth lies inside the final interval for most points.
+    inside = (points.idepth_min[ready] <= true_idepth[ready] * 1.01) & (true_idepth[ready] * 0.99 <= points.idepth_max[ready])
+    assert inside.mean() > 0.8
