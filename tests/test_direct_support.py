@@ -98,7 +98,7 @@ class SyntheticFrame:
 
 def render_frame(scene: PlaneScene, camera: PinholeCamera, index: int, T_world_cam: np.ndarray, **brightness):
     image, depth = scene.render(camera, T_world_cam, **brightness)
-    gray = np.clip(np.round(image), 0, 255).astype(np.uint8)
+    gray = np.clip(np.round(np.nan_to_num(image)), 0, 255).astype(np.uint8)
     return SyntheticFrame(index, index / 30.0, gray, gray.astype(np.float32), None, depth)
 
 

@@ -20,5 +20,6 @@ def relative_affine(
     exposure_ratio = 1.0
     if exposure_from and exposure_to:
         exposure_ratio = exposure_to / exposure_from
-    factor = exposure_ratio * float(np.exp(ab_to[0] - ab_from[0]))
+    with np.errstate(over="ignore"):  # a diverging optimizer may propose huge a: inf is rejected upstream
+        factor = exposure_ratio * float(np.exp(ab_to[0] - ab_from[0]))
     return factor, float(ab_to[1] - factor * ab_from[1])

@@ -163,6 +163,8 @@ class CoarseTracker:
         camera = frame[level].camera
         R, t = T_frame_ref[:3, :3], T_frame_ref[:3, 3]
         factor, offset = self._relative_affine(affine, exposure)
+        if not (np.isfinite(factor) and np.isfinite(offset)):
+            return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0, flow=np.zeros(3))
         warped = points.rays @ R.T + points.idepth[:, None] * t  # = (R x + t d) / d up to the depth scale
         z = warped[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -57,6 +57,10 @@ class Keyframe:
     active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 host pixels
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))  # inverse depths in the host
     immature: ImmaturePoints | None = None
+    # The tracking reference made on this keyframe: every active point of the window projected into it
+    # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.
+    reference_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    reference_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def camera(self) -> PinholeCamera:
@@ -448,7 +452,10 @@ class DirectOdometry:
         points = points[front]
         uv = self.camera.project(points)
         inside = self.camera.in_image(uv)
-        self.tracker.set_reference(keyframe.pyramid, uv[inside], 1.0 / points[inside, 2], keyframe.affine, keyframe.exposure)
+        keyframe.reference_uv, keyframe.reference_idepth = uv[inside], 1.0 / points[inside, 2]
+        self.tracker.set_reference(
+            keyframe.pyramid, keyframe.reference_uv, keyframe.reference_idepth, keyframe.affine, keyframe.exposure
+        )
         self.first_rmse = -1.0
 
     def _visible(self, uv: np.ndarray) -> np.ndarray:

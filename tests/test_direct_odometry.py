@@ -1,0 +1,122 @@
+"""DirectOdometry end to end on rendered sequences: initialization, tracking accuracy, failure reporting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from test_direct_support import PlaneScene, aligned_ate, pose, render_frame, small_camera
+from vo_core.config import load_config
+from vo_core.direct.config import DirectConfig
+from vo_core.direct.coarse_initializer import CoarseInitializer
+from vo_core.direct.odometry import DirectOdometry
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.errors import InputError
+from vo_core.events import EventKind
+from vo_core.system import Odometry
+
+CAMERA = small_camera(320, 240)
+
+
+def smooth_pose(i: int) -> np.ndarray:
+    """A hand-held-like sway in front of the wall: 0.6 m of path over 50 frames."""
+    s = i / 30.0
+    return pose(
+        (0.03 * np.sin(2.0 * s), 0.05 * np.sin(1.3 * s), 0.01 * s),
+        (0.4 * np.sin(1.5 * s), 0.1 * np.sin(2.1 * s), 0.3 * np.sin(s)),
+    )
+
+
+def run(poses, seed=0):
+    scene = PlaneScene(seed=2)
+    odometry = DirectOdometry(DirectConfig(), None, CAMERA, seed)
+    results = [odometry.process(render_frame(scene, CAMERA, i, T)) for i, T in enumerate(poses)]
+    return odometry, results
+
+
+@pytest.fixture(scope="module")
+def smooth_run():
+    poses = [smooth_pose(i) for i in range(50)]
+    odometry, results = run(poses)
+    return poses, odometry, results
+
+
+def test_smooth_sequence_is_tracked_with_small_ate(smooth_run):
+    poses, odometry, results = smooth_run
+    tracked = [r for r in results if r.T_world_cam is not None]
+    first = next(i for i, r in enumerate(results) if r.tracked)
+    assert first <= 15  # DSO snaps after enough translation, then waits 5 frames
+    assert len(tracked) == len(results) - first  # no frame lost after initialization
+    estimated = np.array([r.T_world_cam[:3, 3] for r in tracked])
+    truth = np.array([poses[r.frame_index][:3, 3] for r in tracked])
+    path = np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1))
+    assert aligned_ate(estimated, truth) < 0.02 * path  # measured: 0.6% of the path
+    kinds = [e.kind for r in results for e in r.events]
+    assert kinds.count(EventKind.INITIALIZATION_STARTED) == 1
+    assert kinds.count(EventKind.INITIALIZATION_SUCCEEDED) == 1
+    assert EventKind.TRACKING_FAILED not in kinds
+    assert sum(r.is_keyframe for r in results) >= 3
+
+
+def test_frame_results_carry_what_the_system_needs(smooth_run):
+    _, odometry, results = smooth_run
+    tracked = [r for r in results[-10:] if r.tracked]
+    assert all(r.rmse_before is not None and r.rmse_after <= r.rmse_before * 1.1 for r in tracked)
+    assert all(len(r.points_2d) > 500 and CAMERA.in_image(r.points_2d).all() for r in tracked)
+    assert all("track" in r.timings_ms for r in tracked)
+    keyframe = odometry.newest_keyframe
+    assert keyframe.image.dtype == np.uint8 and len(keyframe.reference_idepth) > 500
+    assert keyframe.immature is not None and len(keyframe.immature) > 500
+    snapshot = odometry.map_snapshot()
+    assert len(snapshot.direct_points_world) == len(snapshot.direct_inverse_depths) > 500
+    assert keyframe.frame_index in snapshot.keyframe_poses
+
+
+def test_a_jump_is_reported_not_silently_tracked():
+    poses = [smooth_pose(i) for i in range(30)]
+    # The camera is teleported: turned by 25 degrees and moved sideways.
+    poses += [pose((0.0, 0.45, 0.0), (0.6, 0.0, 0.2)) @ smooth_pose(i) for i in range(30, 34)]
+    _, results = run(poses)
+    jump = results[30]
+    diverged = jump.rmse_before is not None and jump.rmse_after is not None and jump.rmse_after / jump.rmse_before > 1.1
+    failed = any(e.kind is EventKind.TRACKING_FAILED for e in jump.events)
+    assert failed or diverged
+    if failed:
+        assert jump.T_world_cam is None
+        assert any(e.kind is EventKind.REINITIALIZATION for e in jump.events)
+
+
+def test_coarse_initializer_recovers_motion_direction_and_depth():
+    scene = PlaneScene(seed=1)
+    config = DirectConfig()
+    initializer = CoarseInitializer(config.coarse_init, config.selector, 9.0, 144.0, 2000, seed=0)
+    poses = [pose((0.0, 0.002 * i, 0.0), (0.02 * i, 0.0, 0.005 * i)) for i in range(20)]
+    image, depth = scene.render(CAMERA, poses[0])
+    initializer.set_first(0, ImagePyramid(image, CAMERA, config.pyramid), None)
+    for i in range(1, 20):
+        result = initializer.track(i, ImagePyramid(scene.render(CAMERA, poses[i])[0], CAMERA, config.pyramid), None)
+        if result is not None:
+            break
+    assert result is not None and result.second_frame_index <= 15
+    assert np.mean(result.inverse_depths) == pytest.approx(1.0, rel=0.05)  # DSO's scale: mean inverse depth 1
+    uv = result.points_uv.astype(int)
+    true_idepth = 1.0 / depth[uv[:, 1], uv[:, 0]]
+    scale = np.median(true_idepth / result.inverse_depths)
+    assert np.median(np.abs(result.inverse_depths * scale - true_idepth) / true_idepth) < 0.03
+    t_est, t_true = result.T_first_second[:3, 3], poses[result.second_frame_index][:3, 3]
+    assert np.dot(t_est, t_true) / np.linalg.norm(t_est) / np.linalg.norm(t_true) > 0.99
+    assert np.linalg.norm(t_est / scale - t_true) < 0.05 * np.linalg.norm(t_true)
+
+
+def test_system_dispatches_direct_and_rejects_unknown_initializer():
+    config = load_config(overrides=["method=direct"])
+    assert isinstance(Odometry(config, CAMERA).front_end, DirectOdometry)
+    with pytest.raises(InputError, match="direct.initializer"):
+        DirectOdometry(DirectConfig(initializer="magic"), None, CAMERA, 0)
+
+
+def test_wrong_image_size_is_an_input_error():
+    odometry = DirectOdometry(DirectConfig(), None, CAMERA, 0)
+    frame = render_frame(PlaneScene(seed=0), small_camera(160, 120), 0, pose())
+    with pytest.raises(InputError, match="frame 0"):
+        odometry.process(frame)
