@@ -21,6 +21,7 @@ import time
 from dataclasses import dataclass, field
 from enum import Enum
 
+import cv2
 import numpy as np
 
 from vo_core.direct.affine import relative_affine
@@ -31,7 +32,7 @@ from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, opti
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
-from vo_core.direct.pyramid import ImagePyramid
+from vo_core.direct.pyramid import ImagePyramid, to_level
 from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
@@ -40,6 +41,12 @@ from vo_core.init.result import InitializationResult
 
 INITIALIZERS = ("coarse",)
 INITIAL_LAST_RMSE = 100.0  # FullSystem: lastCoarseRMSE.setConstant(100)
+# activatePointsMT: currentMinActDist (half-resolution pixels) starts at 2, stays in [0, 4], and moves by these
+# steps when the window holds fewer / more points than wanted (fractions of the desired density).
+INITIAL_ACTIVATION_DISTANCE = 2.0
+ACTIVATION_DISTANCE_RANGE = (0.0, 4.0)
+ACTIVATION_DISTANCE_STEPS_DOWN = ((0.66, 0.8), (0.8, 0.5), (0.9, 0.2), (1.0, 0.1))
+ACTIVATION_DISTANCE_STEPS_UP = ((1.5, 0.8), (1.3, 0.5), (1.15, 0.2), (1.0, 0.1))
 
 
 @dataclass
@@ -113,6 +120,7 @@ class DirectOdometry:
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
         self.last_tracking: TrackingResult | None = None
         self.initializer_frames = 0
+        self.min_activation_distance = INITIAL_ACTIVATION_DISTANCE
 
     @property
     def newest_keyframe(self) -> Keyframe | None:
@@ -384,41 +392,48 @@ class DirectOdometry:
     def _activate_points(self, new_keyframe: Keyframe) -> int:
         """activatePointsMT: converged immature points become active where the new keyframe has room.
 
-        Room is judged on a grid in the new keyframe whose cell size yields ``point_density`` cells (DSO's
-        distance map with currentMinActDist): one point per cell, existing active points first."""
+        Room is DSO's distance map: at half resolution in the new keyframe, a candidate needs a distance of
+        at least ``min_activation_distance`` x its selector type to every active point (and to the candidates
+        taken before it); the distance adapts so that the window holds about ``point_density`` points."""
+        self._adapt_activation_distance()
         camera = self.camera
-        cell = max(np.sqrt(camera.width * camera.height / self.config.point_density), 1.0)
-        grid_w = int(np.ceil(camera.width / cell))
-        occupied = np.zeros(int(np.ceil(camera.height / cell)) * grid_w, dtype=bool)
+        half = (camera.width + 1) // 2, (camera.height + 1) // 2
         T_new_world = se3_inverse(new_keyframe.T_world_cam)
 
-        def cells_of(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def half_res_pixels(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             points = transform_points(T_new_world, points_world)
             front = points[:, 2] > 0
             uv = np.full((len(points), 2), -1.0)
             uv[front] = camera.project(points[front])
             inside = front & camera.in_image(uv)
-            index = (uv[:, 1] // cell).astype(int) * grid_w + (uv[:, 0] // cell).astype(int)
-            return np.where(inside, index, -1), inside
+            return np.round(to_level(uv, 1)).astype(int), inside
 
+        free = np.ones((half[1], half[0]), np.uint8)
         for keyframe in self.keyframes:
             if len(keyframe.active_idepth):
-                index, inside = cells_of(keyframe.active_points_world())
-                occupied[index[inside]] = True
+                pixel, inside = half_res_pixels(keyframe.active_points_world())
+                free[pixel[inside, 1], pixel[inside, 0]] = 0
+        distance = cv2.distanceTransform(free, cv2.DIST_L1, 3) if not free.all() else np.full(free.shape, np.inf)
+        spacing = max(self.min_activation_distance, 1.0)
+        grid_w = int(np.ceil(half[0] / spacing))
+        taken: set[int] = set()
         activated = 0
         for keyframe in self.keyframes:
             immature = keyframe.immature
             if immature is None or len(immature) == 0:
                 continue
-            ready = immature.activatable(self.config.immature)
-            candidates = np.flatnonzero(ready)
+            candidates = np.flatnonzero(immature.activatable(self.config.immature))
             points_cam = camera.unproject(immature.uv[candidates]) / immature.idepth[candidates, None]
-            index, inside = cells_of(transform_points(keyframe.T_world_cam, points_cam))
-            # First candidate per free cell (np.unique returns first occurrences).
-            free = inside & ~occupied[np.maximum(index, 0)]
-            _, first = np.unique(index[free], return_index=True)
-            chosen = candidates[np.flatnonzero(free)[first]]
-            occupied[index[np.flatnonzero(free)[first]]] = True
+            pixel, inside = half_res_pixels(transform_points(keyframe.T_world_cam, points_cam))
+            pixel = np.clip(pixel, 0, [half[0] - 1, half[1] - 1])
+            far_enough = distance[pixel[:, 1], pixel[:, 0]] >= self.min_activation_distance * immature.kind[candidates]
+            # New points keep the spacing among themselves: one per cell of that size (first come).
+            cell = (pixel[:, 1] // spacing).astype(int) * grid_w + (pixel[:, 0] // spacing).astype(int)
+            ok = inside & far_enough
+            _, first = np.unique(cell[ok], return_index=True)
+            fresh = [i for i in np.flatnonzero(ok)[first] if cell[i] not in taken]
+            taken.update(int(cell[i]) for i in fresh)
+            chosen = candidates[np.array(fresh, dtype=int)]
             idepth, usable = optimize_for_activation(
                 immature, chosen, self._activation_targets(keyframe, new_keyframe), self.config.immature
             )
@@ -427,8 +442,22 @@ class DirectOdometry:
             # Activated points leave the immature set; so do those that failed and the hopeless ones.
             remove = immature.hopeless()
             remove[chosen] = True
-            keyframe.immature = immature.subset(~remove)
+            # Points outside the new keyframe that cannot be activated now never will (DSO deletes them).
+            outside = np.zeros(len(immature), dtype=bool)
+            outside[candidates[~inside]] = True
+            keyframe.immature = immature.subset(~(remove | outside))
         return activated
+
+    def _adapt_activation_distance(self) -> None:
+        """activatePointsMT's currentMinActDist: closer spacing when the window lacks points, wider when full."""
+        count = sum(len(k.active_idepth) for k in self.keyframes)
+        ratio = count / self.config.point_density
+        # DSO: one large step when far below, then the first matching finer step; all matching steps up.
+        step = -ACTIVATION_DISTANCE_STEPS_DOWN[0][1] if ratio < ACTIVATION_DISTANCE_STEPS_DOWN[0][0] else 0.0
+        step -= next((change for limit, change in ACTIVATION_DISTANCE_STEPS_DOWN[1:] if ratio < limit), 0.0)
+        step += sum(change for limit, change in ACTIVATION_DISTANCE_STEPS_UP if ratio > limit)
+        low, high = ACTIVATION_DISTANCE_RANGE
+        self.min_activation_distance = float(np.clip(self.min_activation_distance + step, low, high))
 
     def _activation_targets(self, host: Keyframe, new_keyframe: Keyframe) -> list[ActivationTarget]:
         """Every other keyframe of the window, the new one included, as seen from ``host``."""
