@@ -42,23 +42,27 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation vector of R, stable near the identity and near a rotation of pi."""
     R = np.asarray(R, dtype=float)
-    cos_theta = np.clip((np.trace(R) - 1.0) * 0.5, -1.0, 1.0)
-    theta = np.arccos(cos_theta)
+    # Rodrigues: (R - R^T)/2 = sin(theta) [a], trace(R) = 1 + 2 cos(theta). atan2 keeps full precision
+    # at both ends of [0, pi], where arccos of the trace loses half the digits.
+    sin_axis = 0.5 * vee(R - R.T)
+    sin_theta = float(np.linalg.norm(sin_axis))
+    cos_theta = 0.5 * (np.trace(R) - 1.0)
+    theta = float(np.arctan2(sin_theta, cos_theta))
     if theta < 1e-6:
-        # R ~ I + [w]: first-order term, with the second-order correction of (R - R^T)/2.
-        return vee(R - R.T) * 0.5 * (1.0 + theta**2 / 6.0)
+        # theta / sin(theta) = 1 + theta^2 / 6 + O(theta^4).
+        return sin_axis * (1.0 + theta**2 / 6.0)
     if np.pi - theta < 1e-4:
-        # Near pi, sin(theta) vanishes; recover the axis from the symmetric part R + I = 2 a a^T (1 - cos) / ...
-        B = (R + np.eye(3)) * 0.5
-        axis_index = int(np.argmax(np.diag(B)))
-        axis = B[:, axis_index] / np.sqrt(max(B[axis_index, axis_index], 1e-300))
+        # Near pi, sin(theta) vanishes; take the axis from the symmetric part instead:
+        # (R + R^T)/2 = cos(theta) I + (1 - cos(theta)) a a^T.
+        outer = (0.5 * (R + R.T) - cos_theta * np.eye(3)) / (1.0 - cos_theta)
+        axis_index = int(np.argmax(np.diag(outer)))
+        axis = outer[:, axis_index] / np.sqrt(outer[axis_index, axis_index])
         axis /= np.linalg.norm(axis)
         # Fix the sign with the (small) antisymmetric part so that log(exp(w)) = w just below pi.
-        antisym = vee(R - R.T)
-        if axis @ antisym < 0.0:
+        if axis @ sin_axis < 0.0:
             axis = -axis
         return axis * theta
-    return vee(R - R.T) * (theta / (2.0 * np.sin(theta)))
+    return sin_axis * (theta / sin_theta)
 
 
 def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
