@@ -1,0 +1,175 @@
+"""The Player: frames in order, scripted and live drops, pause/step, pacing, restart and stop."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass
+
+import pytest
+
+from app.player import Player
+from vo_core.events import EventKind
+
+RATE_HZ = 20.0
+WAIT_S = 5.0  # generous bound for a frame that must arrive; never reached when the player works
+
+
+@dataclass
+class FakeFrame:
+    index: int
+    timestamp: float
+
+
+def frames(count: int, first_index: int = 0) -> list[FakeFrame]:
+    return [FakeFrame(i, i / RATE_HZ) for i in range(first_index, first_index + count)]
+
+
+def play_all(player: Player) -> tuple[list[int], list]:
+    events = []
+    seen = [frame.index for frame in player.play(on_drop=events.append)]
+    return seen, events
+
+
+class Consumer:
+    """Iterates a player on a thread, as the tracking thread does, and hands each frame over a queue."""
+
+    def __init__(self, player: Player):
+        self.player = player
+        self.received: queue.Queue = queue.Queue()
+        self.events: list = []
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        for frame in self.player.play(on_drop=self.events.append):
+            self.received.put(frame.index)
+        self.received.put(None)
+
+    def next(self, timeout: float = WAIT_S):
+        return self.received.get(timeout=timeout)
+
+    def nothing_within(self, seconds: float) -> bool:
+        try:
+            self.received.get(timeout=seconds)
+        except queue.Empty:
+            return True
+        return False
+
+
+def test_all_frames_in_order_without_drops():
+    player = Player(frames(10))
+    seen, events = play_all(player)
+    assert seen == list(range(10))
+    assert events == []
+    assert player.finished
+
+
+def test_scripted_drops_hide_frames_and_say_so():
+    # Indices are the original frame numbers: a sequence cut to start at frame 100.
+    player = Player(frames(20, first_index=100), drops=[(103, 4), (110, 1)])
+    seen, events = play_all(player)
+    assert seen == [100, 101, 102, 107, 108, 109] + list(range(111, 120))
+    assert [e.kind for e in events] == [EventKind.FRAMES_DROPPED] * 2
+    first = events[0]
+    assert (first.frame_index, first.timestamp) == (103, 103 / RATE_HZ)
+    assert first.details == {"count": 4, "requested": 4, "first_frame": 103, "last_frame": 106, "source": "script"}
+    assert events[1].details["count"] == 1 and events[1].details["last_frame"] == 110
+
+
+def test_a_drop_past_the_end_reports_the_frames_it_could_drop():
+    seen, events = play_all(Player(frames(6), drops=[(4, 10)]))
+    assert seen == [0, 1, 2, 3]
+    assert events[0].details["count"] == 2 and events[0].details["requested"] == 10
+
+
+def test_live_drop_acts_at_the_next_frame_like_a_scripted_one():
+    player = Player(frames(12))
+    seen, events = [], []
+    for frame in player.play(on_drop=events.append):
+        seen.append(frame.index)
+        if frame.index == 2:
+            player.drop_next(3)  # a click on the page while frame 2 is being tracked
+    assert seen == [0, 1, 2] + list(range(6, 12))
+    assert events[0].details == {"count": 3, "requested": 3, "first_frame": 3, "last_frame": 5, "source": "live"}
+
+
+def test_pause_holds_frames_step_releases_exactly_one_resume_continues():
+    player = Player(frames(8))
+    player.pause()
+    consumer = Consumer(player)
+    assert consumer.nothing_within(0.3)
+    player.step()
+    assert consumer.next() == 0
+    assert consumer.nothing_within(0.3)
+    player.step()
+    player.step()
+    assert [consumer.next(), consumer.next()] == [1, 2]
+    assert consumer.nothing_within(0.2) and player.paused
+    player.resume()
+    assert [consumer.next() for _ in range(5)] == [3, 4, 5, 6, 7]
+    assert consumer.next() is None
+
+
+def test_a_drop_while_paused_applies_when_playback_continues():
+    player = Player(frames(8))
+    player.pause()
+    consumer = Consumer(player)
+    player.drop_next(2)
+    player.step()
+    assert consumer.next() == 2
+    assert consumer.events[0].details["first_frame"] == 0
+
+
+def test_speed_paces_frames_at_the_dataset_rate():
+    player = Player(frames(6))  # 0.25 s of dataset time at 20 Hz
+    player.speed = 2.0
+    started = time.monotonic()
+    seen, _ = play_all(player)
+    assert seen == list(range(6))
+    assert time.monotonic() - started >= 0.25 / 2.0 - 0.01
+
+
+def test_speed_must_not_be_negative():
+    with pytest.raises(ValueError, match="speed"):
+        Player(frames(1)).speed = -1.0
+
+
+def test_restart_ends_the_pass_and_the_next_pass_starts_over_with_the_script():
+    player = Player(frames(10), drops=[(1, 1)])
+    seen = []
+    for frame in player.play():
+        seen.append(frame.index)
+        if frame.index == 4:
+            player.request_restart()
+    assert seen == [0, 2, 3, 4]
+    assert not player.finished and player.wait_for_restart()
+    seen, events = play_all(player)
+    assert seen == [0] + list(range(2, 10))
+    assert len(events) == 1
+
+
+def test_stop_ends_playback_and_wait_for_restart_returns_false():
+    player = Player(frames(100))
+    player.pause()
+    consumer = Consumer(player)
+    player.step()
+    assert consumer.next() == 0
+    player.stop()
+    assert consumer.next() is None  # the pass ended: no frame after the stop
+    assert not player.finished
+    assert player.wait_for_restart() is False
+
+
+def test_wait_for_restart_wakes_on_a_request_from_another_thread():
+    player = Player(frames(3))
+    play_all(player)
+    threading.Timer(0.1, player.request_restart).start()
+    assert player.wait_for_restart() is True
+
+
+@pytest.mark.parametrize("drop", [(-1, 2), (3, 0)])
+def test_invalid_scripted_drops_are_refused(drop):
+    with pytest.raises(ValueError, match="drop"):
+        Player(frames(5), drops=[drop])
