@@ -42,7 +42,6 @@ class _Residuals:
     energy: float
     num_terms: int
     saturated_ratio: float
-    flow: np.ndarray  # (3,) mean squared pixel shift: translation only, rotation only (0 as DSO), both
     # Buffers of the non-saturated terms for the normal equations (calcGSSSE).
     u: np.ndarray = field(default_factory=lambda: np.zeros(0))
     v: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -82,7 +81,7 @@ def orthonormalized(T: np.ndarray) -> np.ndarray:
 def huber_weight(residual: np.ndarray, threshold: float) -> np.ndarray:
     """w = 1 inside the threshold, k/|r| outside; energy w r^2 (2 - w) is the Huber cost times 2."""
     absolute = np.abs(residual)
-    return np.where(absolute < threshold, 1.0, threshold / np.maximum(absolute, 1e-12))
+    return np.minimum(1.0, threshold / np.maximum(absolute, 1e-12)).astype(residual.dtype, copy=False)
 
 
 class CoarseTracker:
@@ -135,9 +134,9 @@ class CoarseTracker:
         color = level_data.sample_intensity(pattern_uv[..., 0], pattern_uv[..., 1]).reshape(-1)
         flat_uv = pattern_uv.reshape(-1, 2)
         return _LevelPoints(
-            rays=camera.unproject(flat_uv),
-            idepth=np.repeat(idepth, len(PATTERN)),
-            color=color.astype(float),
+            rays=camera.unproject(flat_uv).astype(np.float32),
+            idepth=np.repeat(idepth, len(PATTERN)).astype(np.float32),
+            color=color.astype(np.float32),
             centre_rays=camera.unproject(uv_level),
             centre_idepth=idepth,
         )
@@ -155,54 +154,53 @@ class CoarseTracker:
         affine: np.ndarray,
         exposure: float | None,
         cutoff: float,
-        with_flow: bool = False,
     ) -> _Residuals:
-        """calcRes: Huber energy of all warped pattern pixels, saturated beyond ``cutoff``."""
+        """calcRes: Huber energy of all warped pattern pixels, saturated beyond ``cutoff`` (float32 throughout)."""
         config = self.config
         points = self.levels[level]
         camera = frame[level].camera
-        R, t = T_frame_ref[:3, :3], T_frame_ref[:3, 3]
         factor, offset = self._relative_affine(affine, exposure)
         if not (np.isfinite(factor) and np.isfinite(offset)):
-            return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0, flow=np.zeros(3))
-        warped = points.rays @ R.T + points.idepth[:, None] * t  # = (R x + t d) / d up to the depth scale
-        z = warped[:, 2]
+            return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0)
+        R, t = T_frame_ref[:3, :3].astype(np.float32), T_frame_ref[:3, 3].astype(np.float32)
+        warped = points.rays @ R.T  # R x + t d is the warped point times its inverse depth d
+        warped += points.idepth[:, None] * t
         with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = warped[:, 0] / z, warped[:, 1] / z
-            new_idepth = points.idepth / z
+            inverse_z = 1.0 / warped[:, 2]
+        u, v = warped[:, 0] * inverse_z, warped[:, 1] * inverse_z
         Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
         valid = (
             (Ku > WARP_BORDER) & (Kv > WARP_BORDER) & (Ku < camera.width - 1 - WARP_BORDER)
-            & (Kv < camera.height - 1 - WARP_BORDER) & (new_idepth > 0)
+            & (Kv < camera.height - 1 - WARP_BORDER) & (inverse_z > 0)
         )
-        flow = self._flow_indicators(camera, points, R, t) if with_flow else np.zeros(3)
-        hit = frame[level].sample(Ku[valid], Kv[valid])
+        index = np.flatnonzero(valid)
+        hit = frame[level].sample(Ku[index], Kv[index])
         finite = np.isfinite(hit[:, 0])
-        index = np.flatnonzero(valid)[finite]
-        hit = hit[finite]
+        if not finite.all():
+            index, hit = index[finite], hit[finite]
         color = points.color[index]
-        residual = hit[:, 0] - (factor * color + offset)
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverged affine guess gives inf: rejected later
+            residual = hit[:, 0] - (factor * color + offset)
         weight = huber_weight(residual, config.huber_threshold)
-        saturated = np.abs(residual) > cutoff
+        good = np.abs(residual) <= cutoff
+        saturated = len(residual) - int(np.count_nonzero(good))
         k = config.huber_threshold
         max_energy = 2.0 * k * cutoff - k * k  # the energy of a residual at the cutoff
-        good = ~saturated
-        energy = float(np.sum(weight[good] * residual[good] ** 2 * (2.0 - weight[good])))
-        energy += max_energy * int(saturated.sum())
-        num_terms = len(residual)
+        index, hit, residual, weight, color = index[good], hit[good], residual[good], weight[good], color[good]
+        energy = float(np.dot(weight * residual, residual * (2.0 - weight))) + max_energy * saturated
+        num_terms = int(len(good))
         return _Residuals(
             energy=energy,
             num_terms=num_terms,
-            saturated_ratio=float(saturated.sum()) / max(num_terms, 1),
-            flow=flow,
-            u=u[index][good],
-            v=v[index][good],
-            idepth=new_idepth[index][good],
-            gx=hit[good, 1].astype(float),
-            gy=hit[good, 2].astype(float),
-            residual=residual[good],
-            weight=weight[good],
-            color=color[good],
+            saturated_ratio=saturated / max(num_terms, 1),
+            u=u[index],
+            v=v[index],
+            idepth=points.idepth[index] * inverse_z[index],
+            gx=hit[:, 1],
+            gy=hit[:, 2],
+            residual=residual,
+            weight=weight,
+            color=color,
         )
 
     def _flow_indicators(self, camera, points: _LevelPoints, R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -238,7 +236,7 @@ class CoarseTracker:
         factor, _ = self._relative_affine(affine, exposure)
         dx, dy = res.gx * camera.fx, res.gy * camera.fy
         u, v, d = res.u, res.v, res.idepth
-        J = np.empty((len(u), 8))
+        J = np.empty((len(u), 8), dtype=np.float32)
         J[:, 0] = d * dx
         J[:, 1] = d * dy
         J[:, 2] = -d * (u * dx + v * dy)
@@ -250,8 +248,8 @@ class CoarseTracker:
         weighted = J * res.weight[:, None]
         n = max(len(u), 1)
         scale = self._step_scale()
-        H = (weighted.T @ J) / n * np.outer(scale, scale)
-        b = (weighted.T @ res.residual) / n * scale
+        H = (weighted.T @ J).astype(float) / n * np.outer(scale, scale)
+        b = (weighted.T @ res.residual).astype(float) / n * scale
         return H, b
 
     def _step_scale(self) -> np.ndarray:
@@ -285,7 +283,7 @@ class CoarseTracker:
         ab = np.array(affine, dtype=float)
         rmse_before = self.rmse(frame, T, ab, exposure, level=0)
         rmse_levels = np.full(num_levels, np.nan)
-        flow = np.zeros(3)
+        flow = np.zeros(3)  # DSO's flow indicators come from the finest level only
         num_terms = 0
         repeated = False
         level = coarsest
@@ -293,13 +291,14 @@ class CoarseTracker:
             res, cutoff_repeat = self._residuals_with_cutoff(frame, level, T, ab, exposure)
             T, ab, res = self._optimize_level(frame, level, T, ab, exposure, res, cutoff_repeat)
             rmse_levels[level] = np.sqrt(res.mean_energy)
-            flow, num_terms = res.flow, res.num_terms
+            num_terms = res.num_terms
             if not np.isfinite(rmse_levels[level]) or rmse_levels[level] > config.abort_factor * abort[level]:
                 return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms)
             if cutoff_repeat > 1 and not repeated:
                 repeated = True  # DSO: a level that needed a larger cutoff is optimized once more
                 continue
             level -= 1
+        flow = self._flow_indicators(frame[0].camera, self.levels[0], T[:3, :3], T[:3, 3])
         success = (
             abs(ab[0]) <= config.max_abs_a
             and abs(ab[1]) <= config.max_abs_b
@@ -310,10 +309,10 @@ class CoarseTracker:
     def _residuals_with_cutoff(self, frame, level, T, ab, exposure) -> tuple[_Residuals, float]:
         config = self.config
         repeat = 1.0
-        res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold, with_flow=level == 0)
+        res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold)
         while res.saturated_ratio > config.max_saturated_ratio and repeat < config.max_cutoff_repeat:
             repeat *= 2.0
-            res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold * repeat, with_flow=level == 0)
+            res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold * repeat)
         return res, repeat
 
     def _optimize_level(self, frame, level, T, ab, exposure, res: _Residuals, cutoff_repeat: float):
@@ -337,7 +336,7 @@ class CoarseTracker:
                 step = np.zeros(8)
             T_new = se3_exp(step[:6]) @ T
             ab_new = ab + step[6:]
-            res_new = self._residuals(frame, level, T_new, ab_new, exposure, cutoff, with_flow=level == 0)
+            res_new = self._residuals(frame, level, T_new, ab_new, exposure, cutoff)
             if res_new.mean_energy < res.mean_energy:
                 T, ab, res = T_new, ab_new, res_new
                 H, b = self._normal_equations(frame, level, res, ab, exposure)

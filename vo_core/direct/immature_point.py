@@ -70,7 +70,7 @@ class ImmaturePoints:
         return cls(
             uv=uv,
             kind=kind,
-            color=sampled[..., 0].astype(float),
+            color=sampled[..., 0].astype(np.float32),
             weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
             grad_h=np.einsum("npi,npj->nij", gradient, gradient),
             energy_threshold=np.full(n, len(PATTERN) * config.outlier_threshold),
@@ -175,17 +175,26 @@ class ImmaturePoints:
         self.last_uv[index] = np.column_stack([u_min[mask] + u_max[mask], v_min[mask] + v_max[mask]]) * 0.5
         self.pixel_interval[index] = dist[mask]
 
-    def _pattern_energy(self, frame, index, u, v, rotated, affine, huber, weighted=False):
-        """Huber energy of the pattern at (u, v) (any leading shape matching ``index``), with gradients."""
+    def _pattern_energy(self, frame, index, u, v, rotated, affine, huber, refine=False):
+        """Huber energy of the pattern at (u, v) (any leading shape matching ``index``).
+
+        For the Gauss-Newton refinement (``refine``) the terms carry the gradient-dependent pattern weights
+        and the image gradients are returned too; the discrete search needs intensities only."""
         factor, offset = affine
-        hit = frame.sample(u[..., None] + rotated[..., 0], v[..., None] + rotated[..., 1])
+        pattern_u, pattern_v = u[..., None] + rotated[..., 0], v[..., None] + rotated[..., 1]
+        if refine:
+            hit = frame.sample(pattern_u, pattern_v)
+            intensity = hit[..., 0]
+        else:
+            hit = None
+            intensity = frame.sample_intensity(pattern_u, pattern_v)
         color = self.color[index].reshape(index.shape + (1,) * (u.ndim - 1) + (len(PATTERN),))
-        residual = hit[..., 0] - (factor * color + offset)
+        residual = intensity - (factor * color + offset)
         missing = ~np.isfinite(residual)
         residual = np.where(missing, 0.0, residual)
         w = huber_weight(residual, huber)
         term = w * residual**2 * (2.0 - w)
-        if weighted:
+        if refine:
             pattern_weight = self.weight[index].reshape(color.shape)
             term = term * pattern_weight**2
         energy = np.sum(np.where(missing, MISSING_ENERGY, term), axis=-1)
@@ -198,24 +207,20 @@ class ImmaturePoints:
         rotated = PATTERN @ KRKi[:2, :2].T  # (8, 2)
         random_shift = u_min * 1000.0 - np.floor(u_min * 1000.0)
         start_u, start_v = u_min - random_shift * dx, v_min - random_shift * dy
-        steps = np.arange(num_steps.max())
-        u = start_u[:, None] + steps[None] * dx[:, None]
-        v = start_v[:, None] + steps[None] * dy[:, None]
-        energy, *_ = self._pattern_energy(frame, index, u, v, rotated, affine, config.huber_threshold)
-        energy = np.where(steps[None] < num_steps[:, None], energy, np.inf)
-        best_step = np.argmin(energy, axis=1)
-        rows = np.arange(len(index))
-        best_energy = energy[rows, best_step]
-        far = np.abs(steps[None] - best_step[:, None]) > config.min_trace_test_radius
-        second = np.min(np.where(far, energy, np.inf), axis=1)
-        second = np.where(np.isfinite(second), second, 1e10)  # DSO's secondBest starts at 1e10
-        new_quality = second / np.maximum(best_energy, 1e-12)
-        update = (new_quality < self.quality[index]) | (num_steps > 10)
-        self.quality[index] = np.where(update, new_quality, self.quality[index])
+        best_u, best_v = np.empty(len(index)), np.empty(len(index))
+        # Search lengths differ a lot (a first trace spans ~30 px, a converged one 2): points are searched in
+        # groups of similar length so that padding to the longest costs little.
+        group = np.ceil(np.log2(np.maximum(num_steps, 1))).astype(int)
+        for g in np.unique(group):
+            members = np.flatnonzero(group == g)
+            best_u[members], best_v[members], new_quality = self._discrete_search(
+                frame, index[members], start_u[members], start_v[members], dx[members], dy[members],
+                num_steps[members], rotated, affine, config,
+            )
+            update = (new_quality < self.quality[index[members]]) | (num_steps[members] > 10)
+            self.quality[index[members]] = np.where(update, new_quality, self.quality[index[members]])
 
-        best_u, best_v, best_energy = self._refine(
-            index, frame, u[rows, best_step], v[rows, best_step], dx, dy, rotated, affine, config
-        )
+        best_u, best_v, best_energy = self._refine(index, frame, best_u, best_v, dx, dy, rotated, affine, config)
         outlier = ~(best_energy < self.energy_threshold[index] * config.trace_extra_slack)
         was_outlier = self.status[index] == TraceStatus.OUTLIER
         self.status[index[outlier]] = np.where(was_outlier[outlier], TraceStatus.OOB, TraceStatus.OUTLIER)
@@ -247,6 +252,24 @@ class ImmaturePoints:
         self.pixel_interval[g] = 2.0 * error_px[good]
         self.last_uv[g] = np.column_stack([best_u[good], best_v[good]])
 
+    def _discrete_search(self, frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config):
+        """Pattern energy at 1-px steps along the segment: the best step and the quality of the match."""
+        steps = np.arange(num_steps.max(), dtype=np.float32)
+        f32 = np.float32
+        u = start_u.astype(f32)[:, None] + steps[None] * dx.astype(f32)[:, None]
+        v = start_v.astype(f32)[:, None] + steps[None] * dy.astype(f32)[:, None]
+        energy, *_ = self._pattern_energy(frame, index, u, v, rotated.astype(f32), affine, config.huber_threshold)
+        energy = np.where(np.arange(len(steps))[None] < num_steps[:, None], energy, np.inf)
+        best_step = np.argmin(energy, axis=1)
+        rows = np.arange(len(index))
+        best_energy = energy[rows, best_step]
+        # Quality: the best energy outside +-2 steps over the best one (large = unambiguous match).
+        far = np.abs(np.arange(len(steps))[None] - best_step[:, None]) > config.min_trace_test_radius
+        second = np.min(np.where(far, energy, np.inf), axis=1)
+        second = np.where(np.isfinite(second), second, 1e10)  # DSO's secondBest starts at 1e10
+        quality = second.astype(float) / np.maximum(best_energy, 1e-12)
+        return u[rows, best_step].astype(float), v[rows, best_step].astype(float), quality
+
     def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
         """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""
         n = len(index)
@@ -259,7 +282,7 @@ class ImmaturePoints:
             if len(r) == 0:
                 break
             energy, residual, w, hit, missing = self._pattern_energy(
-                frame, index[r], best_u[r], best_v[r], rotated, affine, config.huber_threshold, weighted=True
+                frame, index[r], best_u[r], best_v[r], rotated, affine, config.huber_threshold, refine=True
             )
             d_residual = np.where(missing, 0.0, dx[r, None] * hit[..., 1] + dy[r, None] * hit[..., 2])
             H = 1.0 + np.sum(w * d_residual**2, axis=1)

@@ -21,10 +21,7 @@ from vo_core.geometry.camera import PinholeCamera
 class PyramidLevel:
     camera: PinholeCamera
     packed: np.ndarray  # (h, w, 3) float32: intensity, d/du, d/dv
-
-    @property
-    def intensity(self) -> np.ndarray:
-        return self.packed[:, :, 0]
+    intensity: np.ndarray  # (h, w) float32, contiguous (cv2 would copy a strided view on every call)
 
     @property
     def grad_sq(self) -> np.ndarray:
@@ -36,7 +33,7 @@ class PyramidLevel:
         return remap_points(self.packed, u, v).reshape(*np.shape(u), 3)
 
     def sample_intensity(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        return remap_points(self.packed[:, :, 0], u, v).reshape(np.shape(u))
+        return remap_points(self.intensity, u, v).reshape(np.shape(u))
 
 
 _REMAP_COLUMNS = 4096  # cv2.remap needs maps narrower than SHRT_MAX: points are laid out in rows of this
@@ -100,7 +97,8 @@ class ImagePyramid:
                     level_camera.scaled(0.5), width=image.shape[1], height=image.shape[0]
                 )
             gx, gy = _gradients(image)
-            self.levels.append(PyramidLevel(level_camera, np.dstack([image, gx, gy]).astype(np.float32)))
+            image = image.astype(np.float32)
+            self.levels.append(PyramidLevel(level_camera, np.dstack([image, gx, gy]), image))
 
     def __len__(self) -> int:
         return len(self.levels)
