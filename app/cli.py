@@ -1,0 +1,239 @@
+"""The command line: ``fdmo run | eval | info``.
+
+    fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
+             [--start N] [--end N] [--drop FRAME:COUNT ...] [--rrd FILE | --no-rrd] [--viser [--port P]] [--quiet]
+    fdmo eval EST GT [--align sim3|se3|none] [--json]
+    fdmo info SOURCE [--json]
+
+Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted.
+The viewers are imported only when asked for, so the CLI works without them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence as SequenceOf
+from pathlib import Path
+from typing import Any, NoReturn
+
+from vo_core.config import METHODS, load_config
+from vo_core.errors import InputError
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT
+DEFAULT_RESULTS_ROOT = Path("results")
+DEFAULT_RECORDING = "recording.rrd"
+DEFAULT_VISER_PORT = 8080
+ALIGNMENTS = ("sim3", "se3", "none")
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line on stderr and exit code 2 (the CLI contract)."""
+
+    def error(self, message: str) -> NoReturn:
+        raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
+
+
+def _drop(text: str) -> tuple[int, int]:
+    """``FRAME:COUNT`` of --drop."""
+    frame, _, count = text.partition(":")
+    try:
+        parsed = int(frame), int(count)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--drop {text}: expected FRAME:COUNT, two integers") from None
+    if parsed[0] < 0 or parsed[1] < 1:
+        raise argparse.ArgumentTypeError(f"--drop {text}: FRAME must be >= 0 and COUNT >= 1")
+    return parsed
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _OneLineParser(prog="fdmo", description="FDMO: feature assisted direct monocular odometry")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
+
+    run = commands.add_parser("run", help="run the odometry over a sequence and write the result files")
+    run.add_argument("source", nargs="?", help="dataset folder or video (default: the bundled sequence)")
+    run.add_argument("--out", type=Path, help="results folder (default: results/<sequence>_<time>/)")
+    run.add_argument("--method", choices=METHODS, help="overrides the configuration's method")
+    run.add_argument("--config", type=Path, help="YAML configuration (the format of config.yaml)")
+    run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                     help="override one setting, e.g. --set direct.tracker.huber_threshold=9 (repeatable)")
+    run.add_argument("--start", type=int, help="first frame (position in the sequence)")
+    run.add_argument("--end", type=int, help="stop before this frame")
+    run.add_argument("--drop", dest="drops", type=_drop, action="append", default=[], metavar="FRAME:COUNT",
+                     help="the odometry never sees frames FRAME..FRAME+COUNT-1 (repeatable)")
+    recording = run.add_mutually_exclusive_group()
+    recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
+    recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
+    run.add_argument("--viser", action="store_true", help="live browser view; stays up until Ctrl-C")
+    run.add_argument("--port", type=int, default=DEFAULT_VISER_PORT, help="port of the viser page")
+    run.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
+    _add_source_options(run)
+
+    evaluate = commands.add_parser("eval", help="metrics of an estimated trajectory against ground truth")
+    evaluate.add_argument("estimate", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
+    evaluate.add_argument("ground_truth", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
+    evaluate.add_argument("--align", choices=ALIGNMENTS, default="sim3", help="alignment before the errors")
+    evaluate.add_argument("--json", action="store_true", help="print JSON")
+
+    info = commands.add_parser("info", help="what the loader finds in a dataset folder or video")
+    info.add_argument("source", help="dataset folder or video")
+    info.add_argument("--json", action="store_true", help="print JSON")
+    _add_source_options(info)
+    return parser
+
+
+def _add_source_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--format", dest="layout", metavar="LAYOUT", help="force the dataset layout")
+    parser.add_argument("--camera", type=Path, help="camera YAML for image folders and videos")
+
+
+# ------------------------------------------------------------------------------------------------ run
+
+
+def command_run(args: argparse.Namespace) -> int:
+    from app.pipeline import open_dataset, run_sequence
+    from app.player import Player
+
+    overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
+    config = load_config(args.config, overrides)
+    sequence = open_dataset(_source(args.source), config.dataset, args.layout, args.camera, args.start, args.end)
+    out_dir = args.out or DEFAULT_RESULTS_ROOT / f"{sequence.name}_{time.strftime('%Y%m%d-%H%M%S')}"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a folder")
+    player = Player(sequence, args.drops)
+    sinks = []  # run_sequence closes them
+    if not args.no_rrd:
+        sinks += _rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence, explicit=args.rrd is not None)
+    if args.viser:
+        sinks.append(_viser_view(sequence, player, args.port))
+    try:
+        summary = run_sequence(sequence, config, out_dir, sinks, player=player,
+                               show_progress=not args.quiet, keep_alive=args.viser)
+    except KeyboardInterrupt:
+        # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
+        print(f"\nfdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
+        return EXIT_OK if args.viser else EXIT_INTERRUPTED
+    if not args.quiet:
+        print(_summary_text(summary.metrics, out_dir))
+    return EXIT_OK
+
+
+def _source(source: str | None) -> Path:
+    if source is not None:
+        return Path(source)
+    from vo_core.datasets import DEFAULT_SEQUENCE
+
+    return Path(DEFAULT_SEQUENCE)
+
+
+def _rerun_sink(path: Path, sequence, explicit: bool) -> list:
+    try:
+        from app.sinks.rerun_sink import RerunSink
+    except ModuleNotFoundError as missing:
+        if missing.name != "app.sinks.rerun_sink":
+            raise
+        if explicit:
+            raise InputError("--rrd: the Rerun sink is not available in this version") from None
+        return []  # the default recording is a convenience: run without it
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return [RerunSink(str(path), sequence.camera, ground_truth=sequence.ground_truth)]
+
+
+def _viser_view(sequence, player, port: int):
+    try:
+        from app.sinks.viser_view import ViserView
+    except ModuleNotFoundError as missing:
+        if missing.name != "app.sinks.viser_view":
+            raise
+        raise InputError("--viser: the viser view is not available in this version") from None
+    view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, port=port)
+    print(f"fdmo: live view at http://127.0.0.1:{port} (Ctrl-C to quit)", file=sys.stderr)
+    return view
+
+
+def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
+    lines = [
+        f"{metrics['sequence']} ({metrics['method']}, {metrics['status']}): "
+        f"tracked {metrics['tracked_frames']}/{metrics['processed_frames']} frames, "
+        f"initialized at frame {metrics['initialization_frame']}, "
+        f"{metrics['fps'] or 0.0:.1f} fps",
+    ]
+    evaluation = metrics.get("evaluation")
+    if evaluation:
+        lines.append("  " + _evaluation_line(evaluation))
+    lines.append(f"  results in {out_dir}")
+    return "\n".join(lines)
+
+
+def _evaluation_line(evaluation: dict[str, Any]) -> str:
+    if "error" in evaluation:
+        return f"no evaluation: {evaluation['error']}"
+    ate = evaluation["ate"]
+    return f"ATE rmse {ate['rmse']:.4f} m over {evaluation['matched_poses']} poses (aligned: {evaluation['align']})"
+
+
+# ----------------------------------------------------------------------------------------- eval, info
+
+
+def command_eval(args: argparse.Namespace) -> int:
+    from vo_core.eval import evaluate
+    from vo_core.trajectory import read_trajectory
+
+    estimate, ground_truth = read_trajectory(args.estimate), read_trajectory(args.ground_truth)
+    result = evaluate(estimate, ground_truth, align=args.align)
+    print(json.dumps(result, indent=2) if args.json else _as_text(result))
+    return EXIT_OK
+
+
+def command_info(args: argparse.Namespace) -> int:
+    from vo_core.datasets import open_sequence
+
+    description = open_sequence(Path(args.source), layout=args.layout, camera_file=args.camera).describe()
+    print(json.dumps(description, indent=2) if args.json else _as_text(description))
+    return EXIT_OK
+
+
+def _as_text(values: dict[str, Any], indent: str = "") -> str:
+    """A nested dict as indented ``key: value`` lines."""
+    lines = []
+    for key, value in values.items():
+        if isinstance(value, dict):
+            lines.append(f"{indent}{key}:")
+            lines.append(_as_text(value, indent + "  "))
+        else:
+            lines.append(f"{indent}{key}: {_short(value)}")
+    return "\n".join(line for line in lines if line)
+
+
+def _short(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    if isinstance(value, list):
+        return "[" + ", ".join(_short(v) for v in value) + "]"
+    return str(value)
+
+
+# ------------------------------------------------------------------------------------------------ main
+
+COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info}
+
+
+def main(argv: SequenceOf[str] | None = None) -> int:
+    try:
+        args = build_parser().parse_args(argv)
+        return COMMANDS[args.command](args)
+    except InputError as error:
+        print(f"fdmo: error: {_one_line(str(error))}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+
+
+def _one_line(message: str) -> str:
+    return " ".join(message.split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,253 @@
+"""One run of the odometry over a sequence, start to finish (the shape of kiss-icp's OdometryPipeline).
+
+    open the sequence -> build the Odometry with its sinks -> play the frames through the Player
+    -> collect what comes back -> evaluate against ground truth -> write the result files
+
+``run_sequence`` is what ``fdmo run`` calls, and what benchmarks and tests call from Python. The result files
+stay valid whatever ends the run (the end of the sequence, a stop, Ctrl-C, an exception): they are written
+as the run goes, and metrics.json is (re)written in a ``finally``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter, defaultdict
+from collections.abc import Iterable, Sequence as SequenceOf
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.player import Player
+from app.progress import ProgressBar
+from app.sinks.files import FilesSink
+from vo_core.config import Config, DatasetConfig
+from vo_core.datasets import open_sequence
+from vo_core.errors import InputError
+from vo_core.eval import evaluate
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot, Sink
+from vo_core.system import Odometry
+from vo_core.trajectory import Trajectory
+
+MIN_POSES_TO_EVALUATE = 3  # a Sim(3) alignment needs three non-collinear positions
+
+# How a pass ended, as metrics.json reports it.
+COMPLETED = "completed"  # the end of the sequence was reached
+STOPPED = "stopped"  # player.stop() (a viewer or the caller)
+RESTARTED = "restarted"  # a restart was requested; the next pass starts over
+INTERRUPTED = "interrupted"  # Ctrl-C or an exception
+
+
+@dataclass
+class RunSummary:
+    """What a run produced: where its files are and the content of its metrics.json."""
+
+    out_dir: Path
+    metrics: dict[str, Any]
+
+    @property
+    def status(self) -> str:
+        return self.metrics["status"]
+
+    @property
+    def tracked_frames(self) -> int:
+        return self.metrics["tracked_frames"]
+
+    @property
+    def initialization_frame(self) -> int | None:
+        return self.metrics["initialization_frame"]
+
+    @property
+    def ate_rmse(self) -> float | None:
+        evaluation = self.metrics.get("evaluation") or {}
+        return evaluation.get("ate", {}).get("rmse")
+
+
+def open_dataset(source: str | Path, dataset: DatasetConfig, layout: str | None = None,
+                 camera_file: str | Path | None = None, start: int | None = None, end: int | None = None):
+    """Open a sequence with the dataset settings of the configuration, cut to frames start..end-1."""
+    sequence = open_sequence(
+        source, layout=layout, camera_file=camera_file, undistort_output=dataset.undistort_output,
+        on_bad_image=dataset.on_bad_image, read_ahead=dataset.read_ahead,
+    )
+    if start is not None or end is not None:
+        sequence = sequence.cut(start, end)
+    return sequence
+
+
+def run_sequence(
+    sequence,
+    config: Config,
+    out_dir: str | Path,
+    sinks: Iterable[Sink] = (),
+    drops: SequenceOf[tuple[int, int]] = (),
+    *,
+    player: Player | None = None,
+    show_progress: bool = False,
+    keep_alive: bool = False,
+) -> RunSummary:
+    """Run ``config.method`` over ``sequence``, writing the result files into ``out_dir``.
+
+    ``drops`` are scripted ``(frame_index, count)`` drops; pass ``player`` instead when a viewer controls
+    playback. With ``keep_alive`` (the live viewer) the run waits at the end of the sequence for a restart
+    or a stop; a restart, at any time, starts a fresh odometry from the first frame and rewrites the files.
+    Returns the summary of the last pass.
+    """
+    if player is None:
+        player = Player(sequence, drops)
+    elif drops:
+        raise ValueError("give scripted drops to the Player, not to run_sequence, when passing a player")
+    files = FilesSink(out_dir)
+    progress = ProgressBar(len(sequence)) if show_progress else None
+    # Built before anything is written: a method that does not exist yet is refused with an empty disk.
+    run = _Run(sequence, config, files, [*([progress] if progress else []), *sinks])
+    try:
+        while True:
+            summary = run.play_once(player)
+            restart = player.wait_for_restart() if keep_alive else player.restart_requested
+            if not restart:
+                return summary
+            run.reset()
+            if progress is not None:
+                progress.restart()
+    finally:
+        run.close()
+
+
+class _Run:
+    """The odometry, the sinks and the statistics of the pass being played."""
+
+    def __init__(self, sequence, config: Config, files: FilesSink, sinks: list[Sink]):
+        self.sequence = sequence
+        self.config = config
+        self.files = files
+        self.sinks = sinks
+        self.reset()
+
+    def reset(self) -> None:
+        """A fresh odometry (and statistics) for the next pass; the sinks are kept."""
+        self.statistics = _Statistics()
+        self.odometry = Odometry(self.config, self.sequence.camera, [self.files, self.statistics, *self.sinks])
+
+    def play_once(self, player: Player) -> RunSummary:
+        """One pass from the first frame; the files are finished whatever ends it."""
+        self.files.begin(self.config)
+        status = INTERRUPTED
+        started = time.perf_counter()
+        try:
+            self._play(player)
+            status = COMPLETED if player.finished else RESTARTED if player.restart_requested else STOPPED
+        finally:
+            summary = self._finish(status, time.perf_counter() - started)
+        return summary
+
+    def _play(self, player: Player) -> None:
+        emit = self.odometry.bus.event
+        for frame in player.play(on_drop=emit):
+            if frame.image is None:
+                # The loader could not read this image (policy "skip"): the odometry must not see a hole.
+                emit(Event(EventKind.FRAME_SKIPPED, frame.index, frame.timestamp,
+                           {"path": frame.path, "error": frame.error}))
+                continue
+            started = time.perf_counter()
+            self.odometry.track(frame)
+            self.statistics.step_ms.append(1000.0 * (time.perf_counter() - started))
+
+    def _finish(self, status: str, wall_s: float) -> RunSummary:
+        snapshot = self.odometry.front_end.map_snapshot()
+        self.files.write_keyframes(snapshot.keyframe_poses)
+        metrics = {
+            "sequence": self.sequence.name,
+            "layout": getattr(self.sequence, "layout", None),
+            "method": self.config.method,
+            "status": status,
+            "frames": len(self.sequence),
+            **self.statistics.counts(),
+            "wall_s": wall_s,
+            "fps": self.statistics.processed / wall_s if wall_s > 0 else None,
+            "timing_ms": self.statistics.timing_ms(),
+            "evaluation": _evaluate(self.statistics.estimate(), getattr(self.sequence, "ground_truth", None)),
+        }
+        self.files.write_metrics(metrics)
+        return RunSummary(self.files.out_dir, metrics)
+
+    def close(self) -> None:
+        self.odometry.close()
+
+
+class _Statistics:
+    """A sink that collects what metrics.json reports: counts, the estimated trajectory, timings per stage."""
+
+    def __init__(self) -> None:
+        self.processed = 0
+        self.tracked = 0
+        self.keyframes = 0
+        self.initialization_frame: int | None = None
+        self.timestamps: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.stage_ms: dict[str, list[float]] = defaultdict(list)
+        self.step_ms: list[float] = []  # the whole Odometry.track call, sinks included
+        self.events: Counter[str] = Counter()
+        self.dropped = 0
+
+    def on_frame(self, frame: Any, result: FrameResult) -> None:
+        self.processed += 1
+        self.tracked += bool(result.tracked)
+        self.keyframes += bool(result.is_keyframe)
+        if result.T_world_cam is not None:
+            self.timestamps.append(result.timestamp)
+            self.poses.append(result.T_world_cam)
+        if self.initialization_frame is None and result.tracked:
+            self.initialization_frame = result.frame_index
+        for stage, ms in result.timings_ms.items():
+            self.stage_ms[stage].append(ms)
+
+    def on_event(self, event: Event) -> None:
+        self.events[event.kind.value] += 1
+        if event.kind is EventKind.INITIALIZATION_SUCCEEDED and self.initialization_frame is None:
+            self.initialization_frame = event.frame_index
+        if event.kind is EventKind.FRAMES_DROPPED:
+            self.dropped += int(event.details["count"])
+
+    def on_map(self, snapshot: MapSnapshot) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def counts(self) -> dict[str, Any]:
+        return {
+            "processed_frames": self.processed,
+            "tracked_frames": self.tracked,
+            "tracked_fraction": self.tracked / self.processed if self.processed else 0.0,
+            "posed_frames": len(self.poses),
+            "keyframes": self.keyframes,
+            "skipped_frames": self.events[EventKind.FRAME_SKIPPED.value],
+            "dropped_frames": self.dropped,
+            "initialization_frame": self.initialization_frame,
+            "events": dict(sorted(self.events.items())),
+        }
+
+    def timing_ms(self) -> dict[str, dict[str, float]]:
+        stages = {**self.stage_ms, "step": self.step_ms}
+        return {
+            stage: {"mean": float(np.mean(ms)), "median": float(np.median(ms)), "max": float(np.max(ms))}
+            for stage, ms in stages.items() if ms
+        }
+
+    def estimate(self) -> Trajectory:
+        poses = np.array(self.poses) if self.poses else np.zeros((0, 4, 4))
+        return Trajectory(np.array(self.timestamps), poses)
+
+
+def _evaluate(estimate: Trajectory, ground_truth: Trajectory | None) -> dict[str, Any] | None:
+    """ATE and RPE after Sim(3) alignment; None without ground truth, the reason when it cannot be done."""
+    if ground_truth is None:
+        return None
+    if len(estimate) < MIN_POSES_TO_EVALUATE:
+        return {"error": f"only {len(estimate)} estimated poses, at least {MIN_POSES_TO_EVALUATE} are needed"}
+    try:
+        return evaluate(estimate, ground_truth, align="sim3")
+    except (InputError, ValueError) as error:  # e.g. no estimate timestamp matches the ground truth
+        return {"error": str(error)}

@@ -1,0 +1,88 @@
+"""A one-line progress bar on stderr for headless runs: frames per second, tracked fraction, last event.
+
+It is a Sink like the others, so it sees exactly what the odometry reports. On a terminal the line is
+redrawn in place; in a log file (not a terminal) a plain line is written every tenth of the sequence.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from typing import Any, TextIO
+
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+
+REDRAW_INTERVAL_S = 0.1  # a terminal redraw at most ten times a second
+LOG_LINES_PER_RUN = 10  # without a terminal: a line every 10 % of the sequence
+BAR_WIDTH = 24
+
+
+class ProgressBar:
+    def __init__(self, total_frames: int, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic):
+        self.total_frames = max(int(total_frames), 1)
+        self.stream = stream if stream is not None else sys.stderr
+        self.clock = clock
+        self.interactive = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.restart()
+
+    def restart(self) -> None:
+        self.started = self.clock()
+        self.frames = 0  # frames the odometry processed
+        self.tracked = 0
+        self.passed = 0  # frames processed, skipped or dropped: how far into the sequence we are
+        self.last_event = ""
+        self._last_draw = -float("inf")
+        self._last_logged_tenth = -1
+        self._logged_passed = -1
+
+    # ------------------------------------------------------------------------------------ Sink protocol
+
+    def on_frame(self, frame: Any, result: FrameResult) -> None:
+        self.frames += 1
+        self.passed += 1
+        self.tracked += bool(result.tracked)
+        self._draw()
+
+    def on_event(self, event: Event) -> None:
+        if event.kind is EventKind.FRAMES_DROPPED:
+            self.passed += int(event.details.get("count", 0))
+        elif event.kind is EventKind.FRAME_SKIPPED:
+            self.passed += 1
+        if event.kind is not EventKind.TRACKING_OK:
+            self.last_event = f"{event.kind.value}@{event.frame_index}"
+
+    def on_map(self, snapshot: MapSnapshot) -> None:
+        pass
+
+    def close(self) -> None:
+        self._draw(force=True)
+        if self.interactive:
+            self.stream.write("\n")
+        self.stream.flush()
+
+    # ------------------------------------------------------------------------------------ drawing
+
+    def line(self) -> str:
+        fraction = min(self.passed / self.total_frames, 1.0)
+        filled = int(round(fraction * BAR_WIDTH))
+        elapsed = max(self.clock() - self.started, 1e-9)
+        tracked = self.tracked / self.frames if self.frames else 0.0
+        text = (
+            f"[{'#' * filled}{'.' * (BAR_WIDTH - filled)}] {self.passed}/{self.total_frames} frames"
+            f" | {self.frames / elapsed:5.1f} fps | tracked {100 * tracked:3.0f}%"
+        )
+        return text + (f" | {self.last_event}" if self.last_event else "")
+
+    def _draw(self, force: bool = False) -> None:
+        if self.interactive:
+            now = self.clock()
+            if force or now - self._last_draw >= REDRAW_INTERVAL_S:
+                self._last_draw = now
+                self.stream.write("\r\033[K" + self.line())  # carriage return, clear to the end of the line
+                self.stream.flush()
+            return
+        tenth = int(LOG_LINES_PER_RUN * self.passed / self.total_frames)
+        if tenth > self._last_logged_tenth or (force and self.passed != self._logged_passed):
+            self._last_logged_tenth, self._logged_passed = tenth, self.passed
+            self.stream.write(self.line() + "\n")
