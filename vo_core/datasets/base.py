@@ -1,0 +1,342 @@
+"""Frames and sequences: what every dataset layout turns its folder into.
+
+A ``Sequence`` is a list of raw images (an ``ImageSource``), their timestamps, the raw camera and the
+photometric calibration. Reading a frame rectifies the image once to the pinhole camera the odometry sees
+(``Sequence.camera``) and, where a photometric calibration exists, computes the corrected irradiance
+(DSO: I' = G^-1(I) / V, divided by the exposure time, before rectification since the vignette lives in the
+raw image). Frames are read lazily; iteration reads ahead on a background thread.
+
+``Frame.index`` is the frame's position in the ORIGINAL sequence: it does not change when the sequence is
+cut, strided or reversed, so outputs and frame drops refer to the dataset's own frame numbers.
+"""
+
+from __future__ import annotations
+
+import copy
+import queue
+import re
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol
+
+import cv2
+import numpy as np
+
+from vo_core.errors import InputError
+from vo_core.geometry.camera import PinholeCamera, camera_to_dict
+from vo_core.geometry.undistorter import Undistorter
+from vo_core.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from vo_core.geometry.photometric import PhotometricCalibration
+
+BAD_IMAGE_POLICIES = ("skip", "abort")
+
+# Layouts without timestamps (VAMR, plain image folders) get frame index x this (issue 2, CLI contract).
+NOMINAL_FRAME_INTERVAL_S = 0.1
+
+
+@dataclass
+class Frame:
+    """One image of a sequence, rectified to ``Sequence.camera``.
+
+    ``image`` is uint8 gray (None when the file was unreadable and the policy is "skip"; ``error`` then says
+    why). ``irradiance`` is the float32 image the direct method tracks: photometrically corrected where a
+    calibration exists, otherwise simply ``image`` as float32, computed on access.
+    """
+
+    index: int
+    timestamp: float
+    image: np.ndarray | None
+    exposure_ms: float | None = None
+    path: str = ""
+    error: str | None = None
+    corrected_irradiance: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def irradiance(self) -> np.ndarray | None:
+        if self.corrected_irradiance is not None:
+            return self.corrected_irradiance
+        return None if self.image is None else self.image.astype(np.float32)
+
+
+class ImageSource(Protocol):
+    """The raw images of a sequence, by original index."""
+
+    def __len__(self) -> int: ...
+
+    def name(self, index: int) -> str:
+        """Where image ``index`` comes from (a path), for messages and ``Frame.path``."""
+
+    def read(self, index: int) -> np.ndarray | None:
+        """Image ``index`` as uint8 gray, or None when it cannot be decoded."""
+
+
+class ImageFiles:
+    """Images stored one per file (every layout except zip archives and videos)."""
+
+    def __init__(self, paths: list[Path]):
+        self.paths = list(paths)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def name(self, index: int) -> str:
+        return str(self.paths[index])
+
+    def read(self, index: int) -> np.ndarray | None:
+        return to_gray_u8(cv2.imread(str(self.paths[index]), cv2.IMREAD_UNCHANGED))
+
+
+def to_gray_u8(image: np.ndarray | None) -> np.ndarray | None:
+    """Decoded image (gray, BGR, BGRA; 8 or 16 bit) -> uint8 gray; None stays None."""
+    if image is None:
+        return None
+    if image.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    return image if image.dtype == np.uint8 else None
+
+
+def natural_sort_key(name: str) -> list:
+    """Sort key comparing digit runs as numbers, so that img2 comes before img10."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", name)]
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, for layouts whose calibration does not state it (KITTI, VAMR)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{path}: unreadable or corrupt image (needed for the image size)")
+    return image.shape[1], image.shape[0]
+
+
+def check_files_exist(paths: list[Path], listed_in: Path) -> None:
+    """Every image a list file refers to must exist; name the first missing one."""
+    missing = [path for path in paths if not path.is_file()]
+    if missing:
+        raise InputError(f"{listed_in}: refers to {len(missing)} missing image(s), first {missing[0]}")
+
+
+def check_ground_truth_overlap(ground_truth: Trajectory, timestamps: np.ndarray, path: Path) -> None:
+    """Ground truth whose time span does not meet the images' is a wrong file (or wrong units)."""
+    if len(ground_truth) == 0:
+        raise InputError(f"{path}: ground truth has no poses")
+    first, last = ground_truth.timestamps[0], ground_truth.timestamps[-1]
+    if last < timestamps.min() or first > timestamps.max():
+        raise InputError(
+            f"{path}: ground truth spans {first:.3f}..{last:.3f} s, which does not overlap the images "
+            f"({timestamps.min():.3f}..{timestamps.max():.3f} s)"
+        )
+
+
+@dataclass(frozen=True)
+class LoadOptions:
+    """How ``open_sequence`` was asked to open a sequence (passed on to every layout's loader)."""
+
+    camera_file: Path | None = None
+    undistort_output: Any = "crop"  # "crop" | "full" | "none" | (width, height): DSO's choices
+    on_bad_image: str = "skip"  # or "abort"
+    read_ahead: int = 8
+
+    def __post_init__(self) -> None:
+        if self.on_bad_image not in BAD_IMAGE_POLICIES:
+            raise InputError(f"on_bad_image must be one of {', '.join(BAD_IMAGE_POLICIES)}, not '{self.on_bad_image}'")
+
+
+class Sequence:
+    """A dataset sequence: lazily read frames, calibration and ground truth.
+
+    ``len``, indexing and iteration see the current view (after ``cut``/``reversed``); ``Frame.index`` stays
+    the original frame number. ``timestamps`` are the dataset's own, in seconds.
+    """
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        layout: str,
+        root: Path,
+        raw_camera,
+        images: ImageSource,
+        timestamps: np.ndarray,
+        options: LoadOptions,
+        exposures_ms: np.ndarray | None = None,
+        photometric: PhotometricCalibration | None = None,
+        ground_truth: Trajectory | None = None,
+        output_size: tuple[int, int] | None = None,
+    ):
+        if len(images) == 0:
+            raise InputError(f"{root}: no images")
+        if len(timestamps) != len(images):
+            raise InputError(f"{root}: {len(images)} images but {len(timestamps)} timestamps")
+        self.name = name
+        self.layout = layout
+        self.root = Path(root)
+        self.raw_camera = raw_camera
+        self.photometric = photometric
+        self.ground_truth = ground_truth
+        self.options = options
+        self._images = images
+        self._timestamps = np.asarray(timestamps, dtype=float)
+        self._exposures_ms = None if exposures_ms is None else np.asarray(exposures_ms, dtype=float)
+        self._undistorter = Undistorter(raw_camera, output=_undistorter_output(options.undistort_output, output_size))
+        self._selection = np.arange(len(images))
+
+    # ------------------------------------------------------------------------------------------- views
+
+    @property
+    def camera(self) -> PinholeCamera:
+        """The rectified pinhole camera of every frame's ``image``: the camera the odometry sees."""
+        return self._undistorter.camera
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._timestamps[self._selection]
+
+    @property
+    def indices(self) -> np.ndarray:
+        """Original frame numbers of the frames of this view, in order."""
+        return self._selection.copy()
+
+    def __len__(self) -> int:
+        return len(self._selection)
+
+    def cut(self, start: int | None = None, end: int | None = None, stride: int = 1) -> "Sequence":
+        """Frames start..end-1 (positions in this view, Python slice rules), every ``stride``-th."""
+        if stride < 1:
+            raise InputError(f"stride must be a positive integer, not {stride}")
+        selection = self._selection[slice(start, end, stride)]
+        if len(selection) == 0:
+            raise InputError(f"{self.root}: cutting {len(self)} frames to start={start}, end={end} leaves none")
+        return self._view(selection)
+
+    def reversed(self) -> "Sequence":
+        """The frames in reverse order (timestamps then decrease; frame indices stay the original ones)."""
+        return self._view(self._selection[::-1])
+
+    def _view(self, selection: np.ndarray) -> "Sequence":
+        view = copy.copy(self)
+        view._selection = selection
+        return view
+
+    # ------------------------------------------------------------------------------------------ frames
+
+    def __getitem__(self, position: int) -> Frame:
+        return self._read(int(self._selection[position]))
+
+    def __iter__(self) -> Iterator[Frame]:
+        if self.options.read_ahead <= 0:
+            return (self._read(int(index)) for index in self._selection)
+        return _read_ahead(self._read, [int(index) for index in self._selection], self.options.read_ahead)
+
+    def _read(self, index: int) -> Frame:
+        timestamp = float(self._timestamps[index])
+        exposure = None if self._exposures_ms is None else float(self._exposures_ms[index])
+        path = self._images.name(index)
+        raw = self._images.read(index)
+        problem = self._problem_with(raw, path)
+        if problem is not None:
+            if self.options.on_bad_image == "abort":
+                raise InputError(problem)
+            return Frame(index, timestamp, None, exposure, path, error=problem)
+        corrected = None
+        if self.photometric is not None and not self.photometric.is_identity:
+            corrected = self._undistorter.rectify(self.photometric.correct(raw, exposure))
+        return Frame(index, timestamp, self._undistorter.rectify(raw), exposure, path, None, corrected)
+
+    def _problem_with(self, raw: np.ndarray | None, path: str) -> str | None:
+        if raw is None:
+            return f"{path}: unreadable or corrupt image"
+        expected = (self.raw_camera.height, self.raw_camera.width)
+        if raw.shape != expected:
+            return (
+                f"{path}: image is {raw.shape[1]}x{raw.shape[0]}, "
+                f"the camera calibration is for {expected[1]}x{expected[0]}"
+            )
+        return None
+
+    # ---------------------------------------------------------------------------------------- describe
+
+    def describe(self) -> dict[str, Any]:
+        """What the loader found, JSON-serializable (``fdmo info`` prints it)."""
+        timestamps = self.timestamps
+        description: dict[str, Any] = {
+            "name": self.name,
+            "layout": self.layout,
+            "root": str(self.root),
+            "frames": len(self),
+            "first_frame_index": int(self._selection[0]),
+            "resolution": [self.camera.width, self.camera.height],
+            "raw_camera": camera_to_dict(self.raw_camera),
+            "camera": camera_to_dict(self.camera),
+            "time_span_s": [float(timestamps.min()), float(timestamps.max())],
+            "duration_s": float(timestamps.max() - timestamps.min()),
+            "exposure_times": self._exposures_ms is not None,
+            "photometric_calibration": self.photometric is not None and not self.photometric.is_identity,
+            "ground_truth": None,
+        }
+        if self.ground_truth is not None:
+            gt_times = self.ground_truth.timestamps
+            description["ground_truth"] = {
+                "poses": len(self.ground_truth),
+                "time_span_s": [float(gt_times[0]), float(gt_times[-1])],
+            }
+        return description
+
+
+def _undistorter_output(requested, file_output_size: tuple[int, int] | None):
+    """DSO's "crop" at the size a calibration file asks for (TUM monoVO: 1280x1024 cropped to 640x480)."""
+    if isinstance(requested, str) and requested == "crop" and file_output_size is not None:
+        return tuple(file_output_size)
+    return requested
+
+
+_END = object()
+
+
+def _read_ahead(read, indices: list[int], depth: int) -> Iterator[Frame]:
+    """Yield ``read(i)`` for ``indices`` in order, reading up to ``depth`` frames ahead on a daemon thread.
+
+    The thread stops when the consumer stops (the generator is closed or garbage-collected), and an error
+    raised while reading (the "abort" policy) is re-raised in the consumer at the frame where it happened."""
+    frames: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def offer(item) -> bool:
+        while not stop.is_set():
+            try:
+                frames.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        for index in indices:
+            try:
+                item = read(index)
+            except BaseException as error:  # handed to the consumer, raised there
+                offer(error)
+                return
+            if not offer(item):
+                return
+        offer(_END)
+
+    thread = threading.Thread(target=produce, name="frame-read-ahead", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = frames.get()
+            if item is _END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=1.0)

@@ -1,0 +1,115 @@
+"""Camera calibration files: the project's camera YAML and DSO's camera.txt.
+
+A camera YAML (``model: pinhole|radtan|equidistant|fov``, ``intrinsics: [fx, fy, cx, cy]``,
+``distortion: [...]``, ``resolution: [w, h]``) is read by ``vo_core.geometry.camera.camera_from_dict``.
+
+DSO's camera.txt (JakobEngel/dso, README "Geometric Calibration File"; TUM monoVO ships one per sequence) is:
+
+    line 1: [FOV|Pinhole|RadTan|EquiDistant|KannalaBrandt] fx fy cx cy dist...   (no prefix: 5 numbers are FOV,
+            or pinhole when the fifth is 0; 8 numbers are RadTan)
+    line 2: input width height
+    line 3: crop | full | none | fx fy cx cy 0          (DSO's rectification choice)
+    line 4: output width height
+
+Intrinsics with cx < 1 and cy < 1 are "relative" (TUM monoVO): fx * w, fy * h, cx * w - 0.5, cy * h - 0.5,
+the -0.5 moving DSO's pixel-corner origin to our pixel-centre origin (dso/src/util/Undistort.cpp).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from vo_core.datasets.textfiles import parse_numbers, read_yaml, split_fields, text_lines
+from vo_core.errors import InputError
+from vo_core.geometry.camera import (
+    EquidistantCamera,
+    FovCamera,
+    PinholeCamera,
+    RadTanCamera,
+    camera_from_dict,
+)
+
+YAML_SUFFIXES = (".yaml", ".yml")
+
+# DSO's model keywords -> (number of parameters after the prefix, our model)
+_DSO_MODELS = {
+    "fov": 5,
+    "pinhole": 5,
+    "radtan": 8,
+    "equidistant": 8,
+    "kannalabrandt": 8,  # the same polynomial in theta as the equidistant (OpenCV fisheye) model
+}
+
+
+@dataclass(frozen=True)
+class CameraFile:
+    """A camera read from a file, and the output size the file asks for (DSO's line 4), if any."""
+
+    camera: object  # a vo_core.geometry.camera model
+    output_size: tuple[int, int] | None = None
+
+
+def load_camera_file(path: Path) -> CameraFile:
+    """A camera from a YAML file (by suffix) or a DSO camera.txt (anything else)."""
+    path = Path(path)
+    if path.suffix.lower() in YAML_SUFFIXES:
+        return CameraFile(camera_from_yaml(path))
+    return read_dso_camera(path)
+
+
+def camera_from_yaml(path: Path):
+    return camera_from_dict(read_yaml(path), source=str(path))
+
+
+def read_dso_camera(path: Path) -> CameraFile:
+    lines = text_lines(path)
+    if len(lines) < 2:
+        raise InputError(f"{path}: a DSO camera file needs at least 2 lines (intrinsics, input width height)")
+    (first_number, first), (size_number, size_line) = lines[0], lines[1]
+    fields = split_fields(first)
+    model = fields[0].lower() if fields and not _is_number(fields[0]) else None
+    values = fields[1:] if model else fields
+    if model is not None and model not in _DSO_MODELS:
+        raise InputError(f"{path}:{first_number}: unknown camera model '{fields[0]}'")
+    if model is None:
+        model = {5: "fov", 8: "radtan"}.get(len(values))
+        if model is None:
+            raise InputError(f"{path}:{first_number}: expected 5 (FOV/pinhole) or 8 (RadTan) numbers")
+    params = parse_numbers(path, first_number, values, _DSO_MODELS[model])
+    width, height = _image_size(path, size_number, size_line)
+    if params[2] < 1 and params[3] < 1:
+        params[:4] = params[0] * width, params[1] * height, params[2] * width - 0.5, params[3] * height - 0.5
+    camera = _dso_camera(model, width, height, params)
+    output_size = None
+    if len(lines) >= 4 and lines[2][1].lower() == "crop":
+        output_size = _image_size(path, *lines[3])
+    return CameraFile(camera, output_size)
+
+
+def _dso_camera(model: str, width: int, height: int, params):
+    fx, fy, cx, cy = (float(value) for value in params[:4])
+    dist = [float(value) for value in params[4:]]
+    if model == "pinhole" or (model == "fov" and dist[0] == 0.0):
+        return PinholeCamera(width, height, fx, fy, cx, cy)
+    if model == "fov":
+        return FovCamera(width, height, fx, fy, cx, cy, dist[0])
+    if model == "radtan":
+        return RadTanCamera(width, height, fx, fy, cx, cy, *dist)
+    return EquidistantCamera(width, height, fx, fy, cx, cy, *dist)
+
+
+def _image_size(path: Path, line_number: int, line: str) -> tuple[int, int]:
+    values = parse_numbers(path, line_number, split_fields(line), 2)
+    width, height = int(values[0]), int(values[1])
+    if width <= 0 or height <= 0 or width != values[0] or height != values[1]:
+        raise InputError(f"{path}:{line_number}: image size must be two positive integers, got '{line}'")
+    return width, height
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True

@@ -1,0 +1,121 @@
+"""TUM monoVO layout (Engel, Usenko, Cremers, "A Photometrically Calibrated Benchmark For Monocular Visual
+Odometry", 2016): images/ or images.zip, times.txt, camera.txt, pcalib.txt, vignette.png, groundtruthSync.txt.
+
+times.txt has 'id timestamp exposure_ms' per frame. camera.txt is DSO's format (FOV model, relative intrinsics,
+usually "crop" to 640x480). The photometric calibration (inverse response and vignette) is used when both files
+are present. groundtruthSync.txt (TUM format, one line per frame) has poses only for the start and end segments
+seen by the motion capture; the other lines are NaN and are dropped.
+"""
+
+from __future__ import annotations
+
+import threading
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vo_core.datasets.base import (
+    ImageFiles,
+    LoadOptions,
+    Sequence,
+    check_ground_truth_overlap,
+    natural_sort_key,
+    to_gray_u8,
+)
+from vo_core.datasets.calibration import load_camera_file
+from vo_core.datasets.image_folder import IMAGE_SUFFIXES, image_files
+from vo_core.datasets.textfiles import check_increasing, read_table, require_file
+from vo_core.errors import InputError
+from vo_core.geometry.photometric import load_photometric_calibration
+from vo_core.trajectory import Trajectory
+
+NAME = "tum_mono"
+LOOKS_FOR = "times.txt + camera.txt + images/ or images.zip (TUM monoVO)"
+
+
+def detect(path: Path) -> bool:
+    return (
+        path.is_dir()
+        and (path / "times.txt").is_file()
+        and (path / "camera.txt").is_file()
+        and ((path / "images").is_dir() or (path / "images.zip").is_file())
+    )
+
+
+def load(path: Path, options: LoadOptions) -> Sequence:
+    images = _images(path)
+    times_file = path / "times.txt"
+    times = read_table(times_file, 3)  # id, timestamp (s), exposure (ms)
+    if len(times) != len(images):
+        raise InputError(f"{times_file}: {len(times)} lines for {len(images)} images")
+    check_increasing(times[:, 1], times_file)
+    calibration = load_camera_file(options.camera_file or require_file(path / "camera.txt", "camera.txt"))
+    photometric = None
+    if (path / "pcalib.txt").is_file() and (path / "vignette.png").is_file():
+        photometric = load_photometric_calibration(path / "pcalib.txt", path / "vignette.png")
+    return Sequence(
+        name=path.name,
+        layout=NAME,
+        root=path,
+        raw_camera=calibration.camera,
+        images=images,
+        timestamps=times[:, 1],
+        exposures_ms=times[:, 2],
+        options=options,
+        photometric=photometric,
+        ground_truth=_ground_truth(path / "groundtruthSync.txt", times[:, 1]),
+        output_size=calibration.output_size,
+    )
+
+
+def _images(path: Path):
+    if (path / "images").is_dir():
+        return ImageFiles(image_files(path / "images"))
+    return ZipImages(path / "images.zip")
+
+
+class ZipImages:
+    """Images inside a zip archive (TUM monoVO ships images.zip), decoded in memory."""
+
+    def __init__(self, zip_path: Path):
+        self.zip_path = zip_path
+        try:
+            self._archive = zipfile.ZipFile(zip_path)
+        except (zipfile.BadZipFile, OSError) as error:
+            raise InputError(f"{zip_path}: not a readable zip archive ({error})") from None
+        names = [n for n in self._archive.namelist() if Path(n).suffix.lower() in IMAGE_SUFFIXES]
+        self.members = sorted(names, key=natural_sort_key)
+        self._lock = threading.Lock()  # a ZipFile is not safe to read from two threads at once
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+    def name(self, index: int) -> str:
+        return f"{self.zip_path}:{self.members[index]}"
+
+    def read(self, index: int) -> np.ndarray | None:
+        try:
+            with self._lock:
+                data = self._archive.read(self.members[index])
+        except (zipfile.BadZipFile, OSError):
+            return None
+        return to_gray_u8(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
+
+
+def _ground_truth(path: Path, timestamps: np.ndarray) -> Trajectory | None:
+    if not path.is_file():
+        return None
+    rows = read_table(path, 8, allow_nan=True)  # timestamp tx ty tz qx qy qz qw
+    rows = rows[np.all(np.isfinite(rows), axis=1)]
+    if len(rows) == 0:
+        raise InputError(f"{path}: no line has a pose (all NaN)")
+    check_increasing(rows[:, 0], path)
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()  # scalar-last (x, y, z, w), as TUM writes
+    poses[:, :3, 3] = rows[:, 1:4]
+    ground_truth = Trajectory(rows[:, 0], poses)
+    check_ground_truth_overlap(ground_truth, timestamps, path)
+    return ground_truth
