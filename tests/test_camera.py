@@ -17,6 +17,7 @@ from vo_core.geometry.camera import (
     camera_from_dict,
     camera_to_dict,
 )
+from vo_core.geometry.undistorter import Undistorter
 
 # Published calibrations: EuRoC cam0 (sensor.yaml), TUM-VI-like fisheye lens on a narrower sensor, TUM monoVO
 # sequence 01 (camera.txt, converted to absolute pixels), and a strong pincushion lens with all five terms.
@@ -24,7 +25,7 @@ EUROC = RadTanCamera(752, 480, 458.654, 457.296, 367.215, 248.375, -0.28340811, 
 PINCUSHION = RadTanCamera(640, 480, 500.0, 505.0, 318.0, 242.0, 0.3, 0.1, 0.001, -0.002, 0.05)
 FISHEYE = EquidistantCamera(512, 512, 190.97, 190.98, 254.93, 256.89, 0.00348, 0.000715, -0.00205, 0.000203)
 FISHEYE_NARROW = EquidistantCamera(640, 480, 300.0, 300.0, 320.0, 240.0, -0.01, 0.02, -0.005, 0.001)
-FOV = FovCamera(1280, 1024, 0.535 * 1280, 0.669 * 1024, 0.493 * 1280 - 0.5, 0.500 * 1024 - 0.5, 0.897)
+FOV = FovCamera(640, 512, 0.535 * 640, 0.669 * 512, 0.493 * 640 - 0.5, 0.500 * 512 - 0.5, 0.897)
 PINHOLE = PinholeCamera(640, 480, 520.0, 521.0, 319.5, 239.5)
 
 ALL_CAMERAS = [EUROC, PINCUSHION, FISHEYE_NARROW, FOV, PINHOLE]
@@ -199,3 +200,126 @@ def test_malformed_dictionaries_name_the_source(change, message):
 def test_non_mapping_is_refused():
     with pytest.raises(InputError, match="^cam.yaml: a camera must be a mapping"):
         camera_from_dict([1, 2, 3], "cam.yaml")
+
+
+# ----------------------------------------------------------------------------------------------- undistorter
+
+DISTORTED = [EUROC, PINCUSHION, FISHEYE_NARROW, FOV]
+DISTORTED_IDS = ["euroc", "pincushion", "fisheye", "fov"]
+BLOB_DIRECTIONS = np.array([[0.0, 0.0], [0.25, -0.2], [-0.3, 0.15], [0.2, 0.25], [-0.2, -0.25]])
+
+
+def image_border(camera) -> np.ndarray:
+    """The centres of all pixels on the image border."""
+    u, v = np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float)
+    right, bottom = np.full_like(v, camera.width - 1), np.full_like(u, camera.height - 1)
+    return np.concatenate([np.column_stack([u, 0 * u]), np.column_stack([u, bottom]),
+                           np.column_stack([0 * v, v]), np.column_stack([right, v])])
+
+
+def render(camera, scene) -> np.ndarray:
+    """Sample a scene defined on the normalized plane z = 1 at every pixel centre of ``camera``."""
+    u, v = np.meshgrid(np.arange(camera.width, dtype=float), np.arange(camera.height, dtype=float))
+    rays = camera.unproject(np.column_stack([u.ravel(), v.ravel()]))
+    return scene(rays[:, 0], rays[:, 1]).reshape(camera.height, camera.width).astype(np.float32)
+
+
+def waves(x, y):
+    """Smooth texture, periodic in the ray's angles (wavelength 0.15 rad): tens of pixels in every camera here,
+    fisheye periphery included."""
+    return 128.0 + 60.0 * np.sin(2 * np.pi * np.arctan(x) / 0.15) * np.cos(2 * np.pi * np.arctan(y) / 0.15)
+
+
+def blobs(x, y):
+    """Round blobs on the normalized plane around BLOB_DIRECTIONS: their centroids are known in any pinhole."""
+    image = np.zeros_like(x)
+    for bx, by in BLOB_DIRECTIONS:
+        image += 255.0 * np.exp(-((x - bx) ** 2 + (y - by) ** 2) / (2 * 0.006**2))
+    return image
+
+
+@pytest.mark.parametrize("camera", DISTORTED, ids=DISTORTED_IDS)
+@pytest.mark.parametrize("output", ["crop", "full", "none", (400, 300)])
+def test_rectified_image_is_the_pinhole_rendering(camera, output):
+    undistorter = Undistorter(camera, output)
+    rectified = undistorter.rectify(render(camera, waves))
+    expected = render(undistorter.camera, waves)
+    valid = undistorter.valid_mask
+    assert rectified.dtype == np.float32 and rectified.shape == expected.shape
+    # Bilinear sampling of a 60-level wave at 1/32 px: well under a grey level of error.
+    assert np.abs(rectified - expected)[valid].max() < 1.0
+    np.testing.assert_array_equal(rectified[~valid], 0.0)
+
+
+@pytest.mark.parametrize("camera", DISTORTED, ids=DISTORTED_IDS)
+def test_points_land_where_the_target_camera_projects_them(camera):
+    undistorter = Undistorter(camera, "crop")
+    rectified = undistorter.rectify(render(camera, blobs))
+    target = undistorter.camera
+    expected = target.project(np.column_stack([BLOB_DIRECTIONS, np.ones(len(BLOB_DIRECTIONS))]))
+    u, v = np.meshgrid(np.arange(target.width), np.arange(target.height))
+    for eu, ev in expected:
+        window = (np.abs(u - eu) < 25) & (np.abs(v - ev) < 25)
+        weights = rectified * window
+        centroid = [np.sum(weights * u) / weights.sum(), np.sum(weights * v) / weights.sum()]
+        np.testing.assert_allclose(centroid, [eu, ev], atol=0.05)
+
+
+@pytest.mark.parametrize("camera", DISTORTED, ids=DISTORTED_IDS)
+def test_crop_has_no_invalid_border(camera):
+    undistorter = Undistorter(camera, "crop")
+    assert undistorter.valid_mask.all()
+    white = np.full((camera.height, camera.width), 255, np.uint8)
+    rectified = undistorter.rectify(white)
+    assert rectified.dtype == np.uint8 and rectified.min() == 255
+    # Crop is tight: 2% more field of view on every side would see outside the raw image.
+    crop = undistorter.camera
+    wider = PinholeCamera(crop.width, crop.height, crop.fx / 1.04, crop.fy / 1.04, crop.cx, crop.cy)
+    raw_uv = camera.project(wider.unproject(image_border(wider)))
+    assert np.any((raw_uv < 0) | (raw_uv > [camera.width - 1, camera.height - 1]))
+
+
+@pytest.mark.parametrize("camera", DISTORTED, ids=DISTORTED_IDS)
+def test_full_shows_the_whole_raw_image(camera):
+    target = Undistorter(camera, "full").camera
+    seen = target.project(camera.unproject(image_border(camera)))
+    assert np.all(seen >= -1e-6) and np.all(seen <= [target.width - 1 + 1e-6, target.height - 1 + 1e-6])
+
+
+def test_given_size_keeps_the_crop_field_of_view():
+    crop = Undistorter(EUROC, "crop").camera
+    for output in ((376, 240), "376x240", [1000, 700]):
+        sized = Undistorter(EUROC, output).camera
+        corners = np.array([[0.0, 0.0], [sized.width - 1, sized.height - 1]])
+        crop_corners = np.array([[0.0, 0.0], [crop.width - 1, crop.height - 1]])
+        np.testing.assert_allclose(sized.unproject(corners), crop.unproject(crop_corners), atol=1e-12)
+
+
+def test_none_keeps_the_raw_pinhole_part():
+    assert Undistorter(EUROC, "none").camera == EUROC.pinhole
+
+
+@pytest.mark.parametrize("output", ["crop", "none", "full"])
+def test_pinhole_input_is_passed_through(output):
+    undistorter = Undistorter(PINHOLE, output)
+    assert undistorter.is_identity and undistorter.camera == PINHOLE and undistorter.valid_mask.all()
+    image = np.zeros((PINHOLE.height, PINHOLE.width), np.uint8)
+    assert undistorter.rectify(image) is image
+
+
+def test_pinhole_to_a_given_size_resamples():
+    undistorter = Undistorter(PINHOLE, (320, 240))
+    assert not undistorter.is_identity
+    rectified = undistorter.rectify(render(PINHOLE, waves))
+    assert np.abs(rectified - render(undistorter.camera, waves)).max() < 1.0
+
+
+@pytest.mark.parametrize("output", ["wide", "640x", (640,), (0, 480), "10x1", (640.5, 480)])
+def test_bad_output_is_refused(output):
+    with pytest.raises(InputError, match="undistort output"):
+        Undistorter(EUROC, output)
+
+
+def test_image_of_the_wrong_size_is_refused():
+    with pytest.raises(ValueError, match="image of 640x480 pixels given to an undistorter for 752x480"):
+        Undistorter(EUROC).rectify(np.zeros((480, 640), np.uint8))
