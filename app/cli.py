@@ -77,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("estimate", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
     evaluate.add_argument("ground_truth", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
     evaluate.add_argument("--align", choices=ALIGNMENTS, default="sim3", help="alignment before the errors")
+    evaluate.add_argument("--max-dt", type=float, default=0.02,
+                          help="largest timestamp difference of an associated pair, seconds (TUM's associate.py)")
     evaluate.add_argument("--json", action="store_true", help="print JSON")
 
     info = commands.add_parser("info", help="what the loader finds in a dataset folder or video")
@@ -101,7 +103,7 @@ def command_run(args: argparse.Namespace) -> int:
     overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
     sequence = open_dataset(_source(args.source), config.dataset, args.layout, args.camera, args.start, args.end)
-    out_dir = args.out or DEFAULT_RESULTS_ROOT / f"{sequence.name}_{time.strftime('%Y%m%d-%H%M%S')}"
+    out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     player = Player(sequence, args.drops)
@@ -117,9 +119,24 @@ def command_run(args: argparse.Namespace) -> int:
         # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
         print(f"\nfdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
         return EXIT_OK if args.viser else EXIT_INTERRUPTED
+    finally:
+        if args.out is None and out_dir.is_dir():
+            _link_latest(out_dir)
     if not args.quiet:
         print(_summary_text(summary.metrics, out_dir))
     return EXIT_OK
+
+
+def _default_out_dir(sequence_name: str) -> Path:
+    return DEFAULT_RESULTS_ROOT / f"{sequence_name}_{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _link_latest(out_dir: Path) -> None:
+    """results/latest points at the newest default results folder (as kiss-icp does)."""
+    latest = out_dir.parent / "latest"
+    if latest.is_symlink() or not latest.exists():
+        latest.unlink(missing_ok=True)
+        latest.symlink_to(out_dir.name, target_is_directory=True)
 
 
 def _source(source: str | None) -> Path:
@@ -184,7 +201,7 @@ def command_eval(args: argparse.Namespace) -> int:
     from vo_core.trajectory import read_trajectory
 
     estimate, ground_truth = read_trajectory(args.estimate), read_trajectory(args.ground_truth)
-    result = evaluate(estimate, ground_truth, align=args.align)
+    result = evaluate(estimate, ground_truth, align=args.align, max_dt=args.max_dt)
     print(json.dumps(result, indent=2) if args.json else _as_text(result))
     return EXIT_OK
 
