@@ -11,7 +11,9 @@ DSO's camera.txt (JakobEngel/dso, README "Geometric Calibration File"; TUM monoV
     line 3: crop | full | none | fx fy cx cy 0          (DSO's rectification choice)
     line 4: output width height
 
-Intrinsics with cx < 1 and cy < 1 are "relative" (TUM monoVO): fx * w, fy * h, cx * w - 0.5, cy * h - 0.5,
+Only line 3 = "crop" with a line 4 is taken from the file (as the output size of the crop); the other choices
+are the caller's (``open_sequence(undistort_output=...)``). Intrinsics with cx < 1 and cy < 1 are "relative"
+(TUM monoVO): fx * w, fy * h, cx * w - 0.5, cy * h - 0.5,
 the -0.5 moving DSO's pixel-corner origin to our pixel-centre origin (dso/src/util/Undistort.cpp).
 """
 
@@ -20,9 +22,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from vo_core.datasets.textfiles import parse_numbers, read_yaml, split_fields, text_lines
 from vo_core.errors import InputError
 from vo_core.geometry.camera import (
+    CameraModel,
     EquidistantCamera,
     FovCamera,
     PinholeCamera,
@@ -32,7 +37,7 @@ from vo_core.geometry.camera import (
 
 YAML_SUFFIXES = (".yaml", ".yml")
 
-# DSO's model keywords -> (number of parameters after the prefix, our model)
+# DSO's model keywords -> number of parameters after the keyword
 _DSO_MODELS = {
     "fov": 5,
     "pinhole": 5,
@@ -46,7 +51,7 @@ _DSO_MODELS = {
 class CameraFile:
     """A camera read from a file, and the output size the file asks for (DSO's line 4), if any."""
 
-    camera: object  # a vo_core.geometry.camera model
+    camera: CameraModel
     output_size: tuple[int, int] | None = None
 
 
@@ -58,7 +63,7 @@ def load_camera_file(path: Path) -> CameraFile:
     return read_dso_camera(path)
 
 
-def camera_from_yaml(path: Path):
+def camera_from_yaml(path: Path) -> CameraModel:
     return camera_from_dict(read_yaml(path), source=str(path))
 
 
@@ -66,28 +71,32 @@ def read_dso_camera(path: Path) -> CameraFile:
     lines = text_lines(path)
     if len(lines) < 2:
         raise InputError(f"{path}: a DSO camera file needs at least 2 lines (intrinsics, input width height)")
-    (first_number, first), (size_number, size_line) = lines[0], lines[1]
-    fields = split_fields(first)
-    model = fields[0].lower() if fields and not _is_number(fields[0]) else None
-    values = fields[1:] if model else fields
-    if model is not None and model not in _DSO_MODELS:
-        raise InputError(f"{path}:{first_number}: unknown camera model '{fields[0]}'")
-    if model is None:
-        model = {5: "fov", 8: "radtan"}.get(len(values))
-        if model is None:
-            raise InputError(f"{path}:{first_number}: expected 5 (FOV/pinhole) or 8 (RadTan) numbers")
-    params = parse_numbers(path, first_number, values, _DSO_MODELS[model])
-    width, height = _image_size(path, size_number, size_line)
-    if params[2] < 1 and params[3] < 1:
+    model, params = _model_and_parameters(path, *lines[0])
+    width, height = _image_size(path, *lines[1])
+    if params[2] < 1 and params[3] < 1:  # relative format (Undistort::readFromFile)
         params[:4] = params[0] * width, params[1] * height, params[2] * width - 0.5, params[3] * height - 0.5
-    camera = _dso_camera(model, width, height, params)
+    if params[0] <= 0 or params[1] <= 0:
+        raise InputError(f"{path}:{lines[0][0]}: focal lengths must be positive, got fx={params[0]}, fy={params[1]}")
     output_size = None
     if len(lines) >= 4 and lines[2][1].lower() == "crop":
         output_size = _image_size(path, *lines[3])
-    return CameraFile(camera, output_size)
+    return CameraFile(_dso_camera(model, width, height, params), output_size)
 
 
-def _dso_camera(model: str, width: int, height: int, params):
+def _model_and_parameters(path: Path, line_number: int, line: str) -> tuple[str, np.ndarray]:
+    """Line 1: an optional model keyword and its numbers; without a keyword DSO tells the model by the count."""
+    fields = split_fields(line)
+    keyword = fields[0].lower() if fields and not _is_number(fields[0]) else None
+    values = fields[1:] if keyword else fields
+    if keyword is not None and keyword not in _DSO_MODELS:
+        raise InputError(f"{path}:{line_number}: unknown camera model '{fields[0]}'")
+    model = keyword or {5: "fov", 8: "radtan"}.get(len(values))
+    if model is None:
+        raise InputError(f"{path}:{line_number}: expected 5 (FOV/pinhole) or 8 (RadTan) numbers")
+    return model, parse_numbers(path, line_number, values, _DSO_MODELS[model])
+
+
+def _dso_camera(model: str, width: int, height: int, params) -> CameraModel:
     fx, fy, cx, cy = (float(value) for value in params[:4])
     dist = [float(value) for value in params[4:]]
     if model == "pinhole" or (model == "fov" and dist[0] == 0.0):
