@@ -97,7 +97,7 @@ def _add_source_options(parser: argparse.ArgumentParser) -> None:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from app.pipeline import open_dataset, run_sequence
+    from app.pipeline import check_method, open_dataset, run_sequence
     from app.player import Player
 
     overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
@@ -106,6 +106,7 @@ def command_run(args: argparse.Namespace) -> int:
     out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
+    check_method(config, sequence.camera)
     player = Player(sequence, args.drops)
     sinks = []  # run_sequence closes them
     if not args.no_rrd:

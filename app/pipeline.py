@@ -76,6 +76,12 @@ def open_dataset(source: str | Path, dataset: DatasetConfig, layout: str | None 
     return sequence
 
 
+def check_method(config: Config, camera) -> None:
+    """Build the odometry once, without sinks, so that a method that does not exist yet (or a setting its front
+    end refuses) raises InputError before any viewer starts or any file is written."""
+    Odometry(config, camera)
+
+
 def run_sequence(
     sequence,
     config: Config,
@@ -100,7 +106,6 @@ def run_sequence(
         raise ValueError("give scripted drops to the Player, not to run_sequence, when passing a player")
     files = FilesSink(out_dir)
     progress = ProgressBar(len(sequence)) if show_progress else None
-    # Built before anything is written: a method that does not exist yet is refused with an empty disk.
     run = _Run(sequence, config, files, [*([progress] if progress else []), *sinks])
     try:
         while True:
