@@ -30,18 +30,19 @@ def make_tum_mono(root: Path, zipped: bool = False) -> Path:
             for i, im in enumerate(images):
                 archive.writestr(f"{i:05d}.png", cv2.imencode(".png", im)[1].tobytes())
     else:
+        (root / "images").mkdir()
         for i, im in enumerate(images):
-            (root / "images").mkdir(exist_ok=True)
             cv2.imwrite(str(root / "images" / f"{i:05d}.png"), im)
-    (root / "times.txt").write_text("".join(f"{i:05d} {1000.0 + 0.05 * i:.6f} {e}\n" for i, e in enumerate(EXPOSURES_MS)))
+    times = [f"{i:05d} {1000.0 + 0.05 * i:.6f} {exposure}\n" for i, exposure in enumerate(EXPOSURES_MS)]
+    (root / "times.txt").write_text("".join(times))
     (root / "camera.txt").write_text(f"0.5 0.625 0.5 0.5 0.9\n{WIDTH} {HEIGHT}\ncrop\n32 24\n")
     (root / "pcalib.txt").write_text(" ".join(f"{255.0 * (i / 255.0) ** 1.5:.6f}" for i in range(256)) + "\n")
     u, v = np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT))
     radius2 = ((u - WIDTH / 2) ** 2 + (v - HEIGHT / 2) ** 2) / (WIDTH / 2) ** 2
     cv2.imwrite(str(root / "vignette.png"), (65535 * (1.0 - 0.3 * radius2).clip(0.1, 1)).astype(np.uint16))
-    nan_row = "nan " * 7 + "nan"
+    no_pose = " ".join(["nan"] * 7)
     (root / "groundtruthSync.txt").write_text(
-        f"1000.000000 0 0 0 0 0 0 1\n1000.050000 {nan_row[4:]}\n1000.100000 1 0 0 0 0 0 1\n"
+        f"1000.000000 0 0 0 0 0 0 1\n1000.050000 {no_pose}\n1000.100000 1 0 0 0 0 0 1\n"
     )
     return root
 

@@ -36,6 +36,7 @@ from vo_core.geometry.camera import (
 )
 
 YAML_SUFFIXES = (".yaml", ".yml")
+CAMERA_FILE_NAMES = ("camera.yaml", "camera.yml", "camera.txt")  # looked for beside the data, in this order
 
 # DSO's model keywords -> number of parameters after the keyword
 _DSO_MODELS = {
@@ -53,6 +54,11 @@ class CameraFile:
 
     camera: CameraModel
     output_size: tuple[int, int] | None = None
+
+
+def find_camera_file(folder: Path) -> Path | None:
+    """The calibration file beside a dataset's images, if there is one."""
+    return next((folder / name for name in CAMERA_FILE_NAMES if (folder / name).is_file()), None)
 
 
 def load_camera_file(path: Path) -> CameraFile:

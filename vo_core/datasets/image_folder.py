@@ -20,7 +20,7 @@ from vo_core.datasets.base import (
     check_ground_truth_overlap,
     natural_sort_key,
 )
-from vo_core.datasets.calibration import load_camera_file
+from vo_core.datasets.calibration import find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, read_table
 from vo_core.errors import InputError
 from vo_core.trajectory import read_trajectory
@@ -28,7 +28,6 @@ from vo_core.trajectory import read_trajectory
 NAME = "image_folder"
 LOOKS_FOR = "image files with camera.yaml (image folder)"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
-CALIBRATION_FILES = ("camera.yaml", "camera.yml", "camera.txt")
 
 
 def detect(path: Path) -> bool:
@@ -63,11 +62,9 @@ def load(path: Path, options: LoadOptions) -> Sequence:
 
 
 def _camera_file(folder: Path, options: LoadOptions) -> Path:
-    if options.camera_file is not None:
-        return options.camera_file
-    for name in CALIBRATION_FILES:
-        if (folder / name).is_file():
-            return folder / name
+    camera_file = options.camera_file or find_camera_file(folder)
+    if camera_file is not None:
+        return camera_file
     raise InputError(f"{folder}: a folder of images needs camera.yaml beside them (or pass a camera file)")
 
 

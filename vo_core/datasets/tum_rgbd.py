@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
-from vo_core.datasets.calibration import CameraFile, load_camera_file
+from vo_core.datasets.calibration import CameraFile, find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, parse_numbers, split_fields, text_lines
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera, RadTanCamera
@@ -30,7 +30,6 @@ FREIBURG_CAMERAS = {
     2: RadTanCamera(640, 480, 520.9, 521.0, 325.1, 249.7, 0.2312, -0.7849, -0.0033, -0.0001, 0.9172),
     3: PinholeCamera(640, 480, 535.4, 539.2, 320.1, 247.6),  # fr3 images are already undistorted
 }
-CALIBRATION_FILES = ("camera.yaml", "camera.yml", "camera.txt")
 _FREIBURG = re.compile(r"freiburg(\d)")
 
 
@@ -75,11 +74,9 @@ def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
 
 
 def _calibration(folder: Path, list_file: Path, options: LoadOptions) -> CameraFile:
-    if options.camera_file is not None:
-        return load_camera_file(options.camera_file)
-    for name in CALIBRATION_FILES:
-        if (folder / name).is_file():
-            return load_camera_file(folder / name)
+    camera_file = options.camera_file or find_camera_file(folder)
+    if camera_file is not None:
+        return load_camera_file(camera_file)
     number = _freiburg_in_header(list_file) or _freiburg_in(folder.name)
     if number not in FREIBURG_CAMERAS:
         raise InputError(
