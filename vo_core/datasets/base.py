@@ -206,6 +206,12 @@ class Sequence:
     def __len__(self) -> int:
         return len(self._selection)
 
+    def __repr__(self) -> str:
+        return (
+            f"Sequence({self.name!r}, layout={self.layout!r}, frames={len(self)}, "
+            f"camera={self.camera.width}x{self.camera.height}, ground_truth={self.ground_truth is not None})"
+        )
+
     def cut(self, start: int | None = None, end: int | None = None, stride: int = 1) -> "Sequence":
         """Frames start..end-1 (positions in this view, Python slice rules), every ``stride``-th."""
         if stride < 1:
