@@ -116,13 +116,16 @@ def _read_vignette(path: Path, image_size: tuple[int, int] | None) -> np.ndarray
     if raw is None:
         raise InputError(f"{path}: cannot decode the vignette image")
     if raw.ndim != 2 or raw.dtype not in (np.uint8, np.uint16):
-        raise InputError(f"{path}: the vignette must be an 8 or 16 bit single-channel image, got {raw.dtype} {raw.shape}")
+        raise InputError(
+            f"{path}: the vignette must be an 8 or 16 bit single-channel image, got {raw.dtype} {raw.shape}"
+        )
     if image_size is not None and (raw.shape[1], raw.shape[0]) != tuple(image_size):
         raise InputError(
             f"{path}: the vignette is {raw.shape[1]}x{raw.shape[0]} but the images are {image_size[0]}x{image_size[1]}"
         )
     if raw.min() == 0:
-        raise InputError(f"{path}: the vignette has {int(np.sum(raw == 0))} zero pixels; it must be positive everywhere")
+        zeros = int(np.sum(raw == 0))
+        raise InputError(f"{path}: the vignette has {zeros} zero pixels; it must be positive everywhere")
     # DSO normalizes by the brightest pixel: V = 1 where the lens attenuates least.
     return _checked_vignette(raw.astype(np.float32) / float(raw.max()), str(path))
 
