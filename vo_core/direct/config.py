@@ -138,6 +138,9 @@ class InitializerConfig:
 class DirectConfig:
     initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
+    # Ours, until the window optimization (issue 4) exists: at each keyframe, re-optimize every active
+    # point's inverse depth against all keyframes of the window with the poses fixed.
+    refine_window_depths: bool = True
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     selector: SelectorConfig = field(default_factory=SelectorConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)

@@ -59,21 +59,15 @@ class ImmaturePoints:
     @classmethod
     def create(cls, host: ImagePyramid, uv: np.ndarray, kind: np.ndarray, config: ImmatureConfig) -> "ImmaturePoints":
         """ImmaturePoint's constructor: sample the pattern in the host; drop points whose pattern leaves it."""
-        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-        pattern_uv = uv[:, None, :] + PATTERN[None]
-        sampled = host[0].sample(pattern_uv[..., 0], pattern_uv[..., 1])  # (N, 8, 3)
-        ok = np.all(np.isfinite(sampled[..., 0]), axis=1)
-        sampled, uv, kind = sampled[ok], uv[ok], np.asarray(kind)[ok]
-        gradient = sampled[..., 1:].astype(float)
-        n = len(uv)
-        grad_sq = np.sum(gradient**2, axis=2)
+        pattern, inside = PatternPoints.sample(host, uv, config)
+        n = len(pattern.uv)
         return cls(
-            uv=uv,
-            kind=kind,
-            color=sampled[..., 0].astype(np.float32),
-            weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
-            grad_h=np.einsum("npi,npj->nij", gradient, gradient),
-            energy_threshold=np.full(n, len(PATTERN) * config.outlier_threshold),
+            uv=pattern.uv,
+            kind=np.asarray(kind)[inside],
+            color=pattern.color,
+            weight=pattern.weight,
+            grad_h=pattern.grad_h,
+            energy_threshold=pattern.energy_threshold,
             idepth_min=np.zeros(n),
             idepth_max=np.full(n, np.nan),
             quality=np.full(n, 10000.0),
@@ -315,19 +309,64 @@ class ActivationTarget:
     affine: tuple[float, float]  # (factor, offset) predicting target intensities from host intensities
 
 
+@dataclass
+class PatternPoints:
+    """Host-side data of points whose inverse depth is optimized: pattern intensities and weights."""
+
+    uv: np.ndarray  # (N, 2) level-0 host pixels
+    color: np.ndarray  # (N, 8)
+    weight: np.ndarray  # (N, 8) gradient-dependent weights (setting_outlierTHSumComponent)
+    energy_threshold: np.ndarray  # (N,)
+    grad_h: np.ndarray  # (N, 2, 2) sum over the pattern of g g^T (the epipolar search's error bound)
+
+    @classmethod
+    def sample(cls, host: ImagePyramid, uv: np.ndarray, config: ImmatureConfig) -> tuple["PatternPoints", np.ndarray]:
+        """The pattern of each pixel in the host; also the mask of pixels whose pattern lies inside."""
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        pattern_uv = uv[:, None, :] + PATTERN[None]
+        sampled = host[0].sample(pattern_uv[..., 0], pattern_uv[..., 1])  # (N, 8, 3)
+        inside = np.all(np.isfinite(sampled[..., 0]), axis=1)
+        sampled = sampled[inside]
+        gradient = sampled[..., 1:].astype(float)
+        grad_sq = np.sum(gradient**2, axis=2)
+        points = cls(
+            uv=uv[inside],
+            color=sampled[..., 0].astype(np.float32),
+            weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
+            energy_threshold=np.full(int(inside.sum()), len(PATTERN) * config.outlier_threshold),
+            grad_h=np.einsum("npi,npj->nij", gradient, gradient),
+        )
+        return points, inside
+
+
 def optimize_for_activation(
     points: ImmaturePoints, index: np.ndarray, targets: list[ActivationTarget], config: ImmatureConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """optimizeImmaturePoint for the points ``index``: LM on each inverse depth over all ``targets``.
+    """optimizeImmaturePoint for the points ``index``, from the middle of their traced interval."""
+    pattern = PatternPoints(
+        points.uv[index], points.color[index], points.weight[index], points.energy_threshold[index],
+        points.grad_h[index],
+    )
+    return optimize_inverse_depths(pattern, points.idepth[index], targets, config, config.first_outlier_slack)
+
+
+def optimize_inverse_depths(
+    points: PatternPoints,
+    idepth: np.ndarray,
+    targets: list[ActivationTarget],
+    config: ImmatureConfig,
+    first_outlier_slack: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed.
 
     Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
     ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
-    idepth = points.idepth[index].copy()
-    n = len(index)
+    idepth = np.array(idepth, dtype=float)
+    n = len(idepth)
     if n == 0 or not targets:
         return idepth, np.zeros(n, dtype=bool)
     in_bounds = np.ones((n, len(targets)), dtype=bool)  # a target once out of bounds stays out (ResState OOB)
-    energy, H, b, inlier = _activation_system(points, index, targets, idepth, in_bounds, config.first_outlier_slack, config)
+    energy, H, b, inlier = _depth_system(points, targets, idepth, in_bounds, first_outlier_slack, config)
     usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
     lam = np.full(n, 0.1)
     running = usable.copy()
@@ -337,7 +376,7 @@ def optimize_for_activation(
         with np.errstate(divide="ignore", invalid="ignore"):
             step = np.where(running, b / (H * (1.0 + lam)), 0.0)
         trial = idepth - step
-        e_new, H_new, b_new, inl_new = _activation_system(points, index, targets, trial, in_bounds, 1.0, config)
+        e_new, H_new, b_new, inl_new = _depth_system(points, targets, trial, in_bounds, 1.0, config)
         usable &= ~running | (H_new >= config.min_idepth_hessian)
         accept = running & (e_new < energy)
         idepth = np.where(accept, trial, idepth)
@@ -349,14 +388,14 @@ def optimize_for_activation(
     return idepth, usable
 
 
-def _activation_system(points, index, targets, idepth, in_bounds, outlier_slack, config):
+def _depth_system(points: PatternPoints, targets, idepth, in_bounds, outlier_slack, config):
     """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target."""
-    n = len(index)
+    n = len(idepth)
     energy, H, b = np.zeros(n), np.zeros(n), np.zeros(n)
     inlier = np.zeros((n, len(targets)), dtype=bool)
-    host_uv = points.uv[index][:, None, :] + PATTERN[None]  # (n, 8, 2)
-    weight_sq = points.weight[index] ** 2
-    threshold = points.energy_threshold[index] * outlier_slack
+    host_uv = points.uv[:, None, :] + PATTERN[None]  # (n, 8, 2)
+    weight_sq = points.weight**2
+    threshold = points.energy_threshold * outlier_slack
     for j, target in enumerate(targets):
         camera = target.level.camera
         rays = camera.unproject(host_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
@@ -371,7 +410,7 @@ def _activation_system(points, index, targets, idepth, in_bounds, outlier_slack,
         ok = in_bounds[:, j] & np.all(inside & np.isfinite(hit[..., 0]), axis=1)
         in_bounds[:, j] = ok
         factor, offset = target.affine
-        residual = np.nan_to_num(hit[..., 0] - (factor * points.color[index] + offset))
+        residual = np.nan_to_num(hit[..., 0] - (factor * points.color + offset))
         w = huber_weight(residual, config.huber_threshold)
         e = np.sum(weight_sq * w * residual**2 * (2.0 - w), axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
