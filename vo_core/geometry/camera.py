@@ -147,7 +147,7 @@ class DistortedCamera:
 def _first_positive_root(coefficients: list[float]) -> float:
     """Smallest positive real root of sum_i c_i s^i (coefficients lowest order first), inf if none."""
     roots = np.roots(np.trim_zeros(np.asarray(coefficients[::-1], dtype=float), "f"))
-    real = roots[np.isreal(roots)].real
+    real = roots[np.abs(roots.imag) <= 1e-9 * np.maximum(1.0, np.abs(roots))].real  # a double root may split
     positive = real[real > 0.0]
     return float(positive.min()) if positive.size else np.inf
 
