@@ -295,6 +295,15 @@ def test_given_size_keeps_the_crop_field_of_view():
         np.testing.assert_allclose(sized.unproject(corners), crop.unproject(crop_corners), atol=1e-12)
 
 
+def test_explicit_target_camera_is_used_as_given():
+    """TUM monoVO's camera.txt names the output pinhole (DSO's line 3 "fx fy cx cy 0")."""
+    target = PinholeCamera(376, 240, 200.0, 240.0, 187.5, 119.5)
+    undistorter = Undistorter(EUROC, target)
+    assert undistorter.camera == target and undistorter.valid_mask.all()
+    np.testing.assert_array_less(np.abs(undistorter.rectify(render(EUROC, waves)) - render(target, waves)), 1.0)
+    assert Undistorter(PINHOLE, PinholeCamera(*vars(PINHOLE).values())).is_identity
+
+
 def test_none_keeps_the_raw_pinhole_part():
     assert Undistorter(EUROC, "none").camera == EUROC.pinhole
 

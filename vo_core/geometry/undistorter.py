@@ -5,6 +5,7 @@ Output choices, as DSO's camera.txt line 3 (Engel et al., DSO code and TUM monoV
 - "full": a pinhole view that shows all of the raw image, with black where nothing was seen (DSO leaves this
   a todo; here: the bounding box of the unprojected raw image border);
 - (width, height) or "WxH": crop's field of view at another resolution;
+- a ``PinholeCamera``: that target, as given (DSO's line 3 "fx fy cx cy 0"; TUM monoVO's camera.txt uses it);
 - "none": the raw camera's own pinhole intrinsics, distortion removed. (DSO's "none" passes the image through
   undistorted and lets the pinhole model ignore the distortion; we rectify instead, so that the pinhole the
   odometry sees is true.)
@@ -24,7 +25,7 @@ import numpy as np
 from vo_core.errors import InputError
 from vo_core.geometry.camera import CameraModel, PinholeCamera
 
-OutputSpec = str | tuple[int, int]
+OutputSpec = str | tuple[int, int] | PinholeCamera
 OUTPUT_MODES = ("crop", "full", "none")
 
 # makeOptimalK_crop (DSO, Undistort.cpp): start 1% beyond the centre lines' extent, then shrink each side that
@@ -152,6 +153,8 @@ def _parse_output(output: OutputSpec) -> tuple[str, tuple[int, int] | None]:
 
 
 def _target_camera(raw: CameraModel, output: OutputSpec) -> PinholeCamera:
+    if isinstance(output, PinholeCamera):
+        return raw if output == raw else output
     mode, size = _parse_output(output)
     if isinstance(raw, PinholeCamera) and mode in OUTPUT_MODES:
         return raw
