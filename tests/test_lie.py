@@ -53,10 +53,6 @@ def random_elements(group: str, count: int = 20) -> list[np.ndarray]:
     return [sim3_exp(xi) for xi in random_twists(7, count, scale=0.5)]
 
 
-def compose(group: str, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return a @ b
-
-
 INVERSE = {"so3": lambda R: R.T, "se3": se3_inverse, "sim3": sim3_inverse}
 IDENTITY = {"so3": np.eye(3), "se3": np.eye(4), "sim3": np.eye(4)}
 
