@@ -229,7 +229,10 @@ def _as_text(values: dict[str, Any], indent: str = "") -> str:
 
 def _short(value: Any) -> str:
     if isinstance(value, float):
-        return f"{value:.6g}"
+        if value != 0.0 and abs(value) < 1e-3:
+            return f"{value:.3e}"
+        # Fixed point keeps timestamps whole (1341840000.123456, not 1.34184e+09); trailing zeros go.
+        return f"{value:.6f}".rstrip("0").rstrip(".")
     if isinstance(value, list):
         return "[" + ", ".join(_short(v) for v in value) + "]"
     return str(value)
