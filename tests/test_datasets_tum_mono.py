@@ -17,14 +17,20 @@ from vo_core.geometry.camera import EquidistantCamera, FovCamera, PinholeCamera,
 
 WIDTH, HEIGHT = 64, 48
 EXPOSURES_MS = (10.0, 20.0, 10.0)
+GRAY = 128
+VIGNETTE_FALLOFF = 0.3  # V = 1 - 0.3 r^2, r = 1 at half the image width from the centre
+
+
+def inverse_response(pixel):
+    return 255.0 * (pixel / 255.0) ** 1.5
 
 
 def make_tum_mono(root: Path, zipped: bool = False) -> Path:
     root.mkdir(parents=True)
     rng = np.random.default_rng(3)
     image = cv2.resize(rng.integers(20, 200, (6, 8), dtype=np.uint8), (WIDTH, HEIGHT), interpolation=cv2.INTER_LINEAR)
-    # frames 0 and 1 show the same scene; 2 is a different one
-    images = [image, image, 255 - image]
+    # frames 0 and 1 show the same scene at two exposures; frame 2 is a uniform gray
+    images = [image, image, np.full_like(image, GRAY)]
     if zipped:
         with zipfile.ZipFile(root / "images.zip", "w") as archive:
             for i, im in enumerate(images):
@@ -36,10 +42,11 @@ def make_tum_mono(root: Path, zipped: bool = False) -> Path:
     times = [f"{i:05d} {1000.0 + 0.05 * i:.6f} {exposure}\n" for i, exposure in enumerate(EXPOSURES_MS)]
     (root / "times.txt").write_text("".join(times))
     (root / "camera.txt").write_text(f"0.5 0.625 0.5 0.5 0.9\n{WIDTH} {HEIGHT}\ncrop\n32 24\n")
-    (root / "pcalib.txt").write_text(" ".join(f"{255.0 * (i / 255.0) ** 1.5:.6f}" for i in range(256)) + "\n")
+    (root / "pcalib.txt").write_text(" ".join(f"{inverse_response(i):.6f}" for i in range(256)) + "\n")
     u, v = np.meshgrid(np.arange(WIDTH), np.arange(HEIGHT))
     radius2 = ((u - WIDTH / 2) ** 2 + (v - HEIGHT / 2) ** 2) / (WIDTH / 2) ** 2
-    cv2.imwrite(str(root / "vignette.png"), (65535 * (1.0 - 0.3 * radius2).clip(0.1, 1)).astype(np.uint16))
+    vignette = (1.0 - VIGNETTE_FALLOFF * radius2).clip(0.1, 1)
+    cv2.imwrite(str(root / "vignette.png"), (65535 * vignette).astype(np.uint16))
     no_pose = " ".join(["nan"] * 7)
     (root / "groundtruthSync.txt").write_text(
         f"1000.000000 0 0 0 0 0 0 1\n1000.050000 {no_pose}\n1000.100000 1 0 0 0 0 0 1\n"
@@ -59,13 +66,17 @@ def test_tum_mono_calibration_exposures_and_ground_truth(tmp_path):
     assert sequence.describe()["photometric_calibration"] is True
 
 
-def test_tum_mono_irradiance_is_corrected_for_exposure_and_response(tmp_path):
+def test_tum_mono_irradiance_is_corrected_for_response_and_vignette(tmp_path):
     sequence = open_sequence(make_tum_mono(tmp_path / "seq"))
-    short, long = sequence[0], sequence[1]  # the same scene at 10 ms and 20 ms
-    assert short.irradiance.dtype == np.float32 and short.irradiance.shape == (24, 32)
-    valid = short.irradiance > 1e-3
-    np.testing.assert_allclose(long.irradiance[valid] / short.irradiance[valid], 0.5, rtol=1e-4)
-    assert not np.allclose(short.irradiance, short.image.astype(np.float32))
+    uniform = sequence[2].irradiance
+    assert uniform.dtype == np.float32 and uniform.shape == (24, 32)
+    # G^-1(128) at the centre, where V is ~1; larger towards the corners, where the vignette darkened the image
+    np.testing.assert_allclose(uniform[11:13, 15:17], inverse_response(GRAY), rtol=0.01)
+    assert uniform[0, 0] > 1.05 * uniform[12, 16]
+    # the exposure is not divided out (DSO): it goes with the frame to the affine brightness model
+    short, long = sequence[0], sequence[1]
+    assert (short.exposure_ms, long.exposure_ms) == (10.0, 20.0)
+    np.testing.assert_array_equal(short.irradiance, long.irradiance)
 
 
 def test_tum_mono_images_zip_gives_the_same_frames(tmp_path):
@@ -101,7 +112,14 @@ def test_tum_mono_times_not_matching_the_images_is_refused(tmp_path):
 def test_dso_camera_file_models(tmp_path, text, expected):
     (tmp_path / "camera.txt").write_text(text)
     calibration = read_dso_camera(tmp_path / "camera.txt")
-    assert calibration.camera == expected and calibration.output_size is None
+    assert calibration.camera == expected and calibration.output is None
+
+
+def test_dso_camera_file_output_line_gives_the_rectified_camera(tmp_path):
+    root = make_tum_mono(tmp_path / "seq")
+    (root / "camera.txt").write_text(f"FOV 0.5 0.625 0.5 0.5 0.9\n{WIDTH} {HEIGHT}\n0.4 0.5 0.5 0.5 0\n32 24\n")
+    assert open_sequence(root).camera == PinholeCamera(32, 24, 12.8, 12.0, 15.5, 11.5)
+    assert open_sequence(root, undistort_output="none").camera == PinholeCamera(WIDTH, HEIGHT, 32, 30, 31.5, 23.5)
 
 
 @pytest.mark.parametrize(

@@ -3,8 +3,9 @@
 A ``Sequence`` is a list of raw images (an ``ImageSource``), their timestamps, the raw camera and the
 photometric calibration. Reading a frame rectifies the image once to the pinhole camera the odometry sees
 (``Sequence.camera``) and, where a photometric calibration exists, computes the corrected irradiance
-(DSO: I' = G^-1(I) / V, divided by the exposure time, before rectification since the vignette lives in the
-raw image). Frames are read lazily; iteration reads ahead on a background thread.
+G^-1(I) / V before rectification, since the vignette lives in the raw image. As in DSO (PhotometricUndistorter::
+processFrame) the exposure time is not divided out: it travels in ``Frame.exposure_ms`` to the direct method's
+affine brightness model. Frames are read lazily; iteration reads ahead on a background thread.
 
 ``Frame.index`` is the frame's position in the ORIGINAL sequence: it does not change when the sequence is
 cut, strided or reversed, so outputs and frame drops refer to the dataset's own frame numbers.
@@ -19,18 +20,17 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
 
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera, camera_to_dict
+from vo_core.geometry.photometric import PhotometricCalibration
 from vo_core.geometry.undistorter import Undistorter
 from vo_core.trajectory import Trajectory
 
-if TYPE_CHECKING:
-    from vo_core.geometry.photometric import PhotometricCalibration
 
 BAD_IMAGE_POLICIES = ("skip", "abort")
 
@@ -43,8 +43,9 @@ class Frame:
     """One image of a sequence, rectified to ``Sequence.camera``.
 
     ``image`` is uint8 gray (None when the file was unreadable and the policy is "skip"; ``error`` then says
-    why). ``irradiance`` is the float32 image the direct method tracks: photometrically corrected where a
-    calibration exists, otherwise simply ``image`` as float32, computed on access.
+    why). ``irradiance`` is the float32 image the direct method tracks: G^-1(image) / V where a photometric
+    calibration exists, otherwise simply ``image`` as float32, computed on access. ``exposure_ms`` is the
+    exposure time where the dataset records it (TUM monoVO), else None.
     """
 
     index: int
@@ -168,7 +169,7 @@ class Sequence:
         exposures_ms: np.ndarray | None = None,
         photometric: PhotometricCalibration | None = None,
         ground_truth: Trajectory | None = None,
-        output_size: tuple[int, int] | None = None,
+        calibration_output=None,
     ):
         if len(images) == 0:
             raise InputError(f"{root}: no images")
@@ -178,13 +179,13 @@ class Sequence:
         self.layout = layout
         self.root = Path(root)
         self.raw_camera = raw_camera
-        self.photometric = photometric
+        self.photometric = photometric or PhotometricCalibration.identity()
         self.ground_truth = ground_truth
         self.options = options
         self._images = images
         self._timestamps = np.asarray(timestamps, dtype=float)
         self._exposures_ms = None if exposures_ms is None else np.asarray(exposures_ms, dtype=float)
-        self._undistorter = Undistorter(raw_camera, output=_undistorter_output(options.undistort_output, output_size))
+        self._undistorter = Undistorter(raw_camera, _undistorter_output(options.undistort_output, calibration_output))
         self._selection = np.arange(len(images))
 
     # ------------------------------------------------------------------------------------------- views
@@ -251,8 +252,8 @@ class Sequence:
                 raise InputError(problem)
             return Frame(index, timestamp, None, exposure, path, error=problem)
         corrected = None
-        if self.photometric is not None and not self.photometric.is_identity:
-            corrected = self._undistorter.rectify(self.photometric.correct(raw, exposure))
+        if not self.photometric.is_identity:
+            corrected = self._undistorter.rectify(self.photometric.correct(raw))
         return Frame(index, timestamp, self._undistorter.rectify(raw), exposure, path, None, corrected)
 
     def _problem_with(self, raw: np.ndarray | None, path: str) -> str | None:
@@ -283,7 +284,7 @@ class Sequence:
             "time_span_s": [float(timestamps.min()), float(timestamps.max())],
             "duration_s": float(timestamps.max() - timestamps.min()),
             "exposure_times": self._exposures_ms is not None,
-            "photometric_calibration": self.photometric is not None and not self.photometric.is_identity,
+            "photometric_calibration": not self.photometric.is_identity,
             "ground_truth": None,
         }
         if self.ground_truth is not None:
@@ -295,10 +296,11 @@ class Sequence:
         return description
 
 
-def _undistorter_output(requested, file_output_size: tuple[int, int] | None):
-    """DSO's "crop" at the size a calibration file asks for (TUM monoVO: 1280x1024 cropped to 640x480)."""
-    if isinstance(requested, str) and requested == "crop" and file_output_size is not None:
-        return tuple(file_output_size)
+def _undistorter_output(requested, calibration_output):
+    """The calibration file's own target (TUM monoVO: 1280x1024 cropped to 640x480) unless the caller asked for
+    something other than the default "crop"."""
+    if isinstance(requested, str) and requested == "crop" and calibration_output is not None:
+        return calibration_output
     return requested
 
 

@@ -11,9 +11,9 @@ DSO's camera.txt (JakobEngel/dso, README "Geometric Calibration File"; TUM monoV
     line 3: crop | full | none | fx fy cx cy 0          (DSO's rectification choice)
     line 4: output width height
 
-Only line 3 = "crop" with a line 4 is taken from the file (as the output size of the crop); the other choices
-are the caller's (``open_sequence(undistort_output=...)``). Intrinsics with cx < 1 and cy < 1 are "relative"
-(TUM monoVO): fx * w, fy * h, cx * w - 0.5, cy * h - 0.5,
+Lines 3-4 are kept as the file's rectification target when they give "crop" at some size or an explicit
+pinhole (relative, like line 1); "full" and "none" are left to the caller (``open_sequence(undistort_output=)``).
+Intrinsics with cx < 1 and cy < 1 are "relative" (TUM monoVO): fx * w, fy * h, cx * w - 0.5, cy * h - 0.5,
 the -0.5 moving DSO's pixel-corner origin to our pixel-centre origin (dso/src/util/Undistort.cpp).
 """
 
@@ -50,10 +50,11 @@ _DSO_MODELS = {
 
 @dataclass(frozen=True)
 class CameraFile:
-    """A camera read from a file, and the output size the file asks for (DSO's line 4), if any."""
+    """A camera read from a file, and the rectification target the file asks for, if any: a (width, height) for
+    DSO's "crop" at that size, or a PinholeCamera."""
 
     camera: CameraModel
-    output_size: tuple[int, int] | None = None
+    output: tuple[int, int] | PinholeCamera | None = None
 
 
 def find_camera_file(folder: Path) -> Path | None:
@@ -80,13 +81,29 @@ def read_dso_camera(path: Path) -> CameraFile:
     model, params = _model_and_parameters(path, *lines[0])
     width, height = _image_size(path, *lines[1])
     if params[2] < 1 and params[3] < 1:  # relative format (Undistort::readFromFile)
-        params[:4] = params[0] * width, params[1] * height, params[2] * width - 0.5, params[3] * height - 0.5
+        params[:4] = _absolute_intrinsics(params[:4], width, height)
     if params[0] <= 0 or params[1] <= 0:
         raise InputError(f"{path}:{lines[0][0]}: focal lengths must be positive, got fx={params[0]}, fy={params[1]}")
-    output_size = None
-    if len(lines) >= 4 and lines[2][1].lower() == "crop":
-        output_size = _image_size(path, *lines[3])
-    return CameraFile(_dso_camera(model, width, height, params), output_size)
+    output = _rectification_target(path, lines[2], lines[3]) if len(lines) >= 4 else None
+    return CameraFile(_dso_camera(model, width, height, params), output)
+
+
+def _absolute_intrinsics(relative: np.ndarray, width: int, height: int) -> np.ndarray:
+    fx, fy, cx, cy = relative
+    return np.array([fx * width, fy * height, cx * width - 0.5, cy * height - 0.5])
+
+
+def _rectification_target(path: Path, mode_line: tuple[int, str], size_line: tuple[int, str]):
+    """Lines 3-4: "crop" at a size -> (width, height); "fx fy cx cy 0" (relative) -> that PinholeCamera."""
+    (mode_number, mode), size = mode_line, _image_size(path, *size_line)
+    if mode.lower() == "crop":
+        return size
+    if mode.lower() in ("full", "none"):
+        return None
+    fx, fy, cx, cy = _absolute_intrinsics(parse_numbers(path, mode_number, split_fields(mode), 4), *size)
+    if fx <= 0 or fy <= 0:
+        raise InputError(f"{path}:{mode_number}: output focal lengths must be positive")
+    return PinholeCamera(size[0], size[1], fx, fy, cx, cy)
 
 
 def _model_and_parameters(path: Path, line_number: int, line: str) -> tuple[str, np.ndarray]:

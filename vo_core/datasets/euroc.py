@@ -56,7 +56,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         timestamps=timestamps,
         options=options,
         ground_truth=_ground_truth(mav0, sequence_root, T_body_cam, timestamps),
-        output_size=calibration.output_size,
+        calibration_output=calibration.output,
     )
 
 

@@ -2,8 +2,7 @@
 Odometry", 2016): images/ or images.zip, times.txt, camera.txt, pcalib.txt, vignette.png, groundtruthSync.txt.
 
 times.txt has 'id timestamp exposure_ms' per frame. camera.txt is DSO's format (FOV model, relative intrinsics,
-usually "crop" to 640x480). The photometric calibration (inverse response and vignette) is used when both files
-are present. groundtruthSync.txt (TUM format, one line per frame) has poses only for the start and end segments
+usually "crop" to 640x480). The photometric calibration (inverse response, vignette) is used where present. groundtruthSync.txt (TUM format, one line per frame) has poses only for the start and end segments
 seen by the motion capture; the other lines are NaN and are dropped.
 """
 
@@ -27,7 +26,7 @@ from vo_core.datasets.base import (
 )
 from vo_core.datasets.calibration import load_camera_file
 from vo_core.datasets.image_folder import IMAGE_SUFFIXES, image_files
-from vo_core.datasets.textfiles import check_increasing, read_table, require_file
+from vo_core.datasets.textfiles import check_increasing, read_table
 from vo_core.errors import InputError
 from vo_core.geometry.photometric import load_photometric_calibration
 from vo_core.trajectory import Trajectory
@@ -52,23 +51,28 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     if len(times) != len(images):
         raise InputError(f"{times_file}: {len(times)} lines for {len(images)} images")
     check_increasing(times[:, 1], times_file)
-    calibration = load_camera_file(options.camera_file or require_file(path / "camera.txt", "camera.txt"))
-    photometric = None
-    if (path / "pcalib.txt").is_file() and (path / "vignette.png").is_file():
-        photometric = load_photometric_calibration(path / "pcalib.txt", path / "vignette.png")
+    calibration = load_camera_file(options.camera_file or path / "camera.txt")
+    camera = calibration.camera
+    photometric = load_photometric_calibration(
+        _if_present(path / "pcalib.txt"), _if_present(path / "vignette.png"), (camera.width, camera.height)
+    )
     return Sequence(
         name=path.name,
         layout=NAME,
         root=path,
-        raw_camera=calibration.camera,
+        raw_camera=camera,
         images=images,
         timestamps=times[:, 1],
         exposures_ms=times[:, 2],
         options=options,
         photometric=photometric,
         ground_truth=_ground_truth(path / "groundtruthSync.txt", times[:, 1]),
-        output_size=calibration.output_size,
+        calibration_output=calibration.output,
     )
+
+
+def _if_present(path: Path) -> Path | None:
+    return path if path.is_file() else None
 
 
 def _images(path: Path):

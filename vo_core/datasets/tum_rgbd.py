@@ -51,7 +51,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         timestamps=timestamps,
         options=options,
         ground_truth=ground_truth,
-        output_size=calibration.output_size,
+        calibration_output=calibration.output,
     )
 
 

@@ -47,7 +47,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         timestamps=timestamps,
         options=options,
         ground_truth=_ground_truth(path / "poses.txt", timestamps),
-        output_size=calibration.output_size,
+        calibration_output=calibration.output,
     )
 
 

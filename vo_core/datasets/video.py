@@ -41,7 +41,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         images=frames,
         timestamps=frames.timestamps,
         options=options,
-        output_size=calibration.output_size,
+        calibration_output=calibration.output,
     )
 
 
