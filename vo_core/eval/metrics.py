@@ -1,0 +1,292 @@
+"""Trajectory error metrics, each with the equation it implements.
+
+- ATE, the absolute trajectory error (Sturm et al. 2012, "A Benchmark for the Evaluation of RGB-D SLAM Systems",
+  eq. 7-8; Zhang & Scaramuzza 2018, "A Tutorial on Quantitative Trajectory Evaluation", sec. IV-A).
+- RPE, the relative pose error over a delta in frames or metres (Sturm et al. 2012, eq. 1-3).
+- The drifts of the TUM monoVO benchmark (Engel, Usenko & Cremers 2016, "A Photometrically Calibrated
+  Benchmark For Monocular Visual Odometry", sec. 4, eq. 6-8).
+- The frame-drop error of FDMO (Younes, Asmar & Zelek 2019, sec. 5.3.2).
+
+``evaluate`` combines them into the JSON-ready dictionary that ``metrics.json`` and ``fdmo eval`` show.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from vo_core.errors import InputError
+from vo_core.eval.align import Alignment, fit_alignment
+from vo_core.eval.associate import DEFAULT_MAX_DT_S, associate
+from vo_core.geometry.lie import sim3_inverse, sim3_scale
+from vo_core.trajectory import Trajectory
+
+RPE_UNITS = ("frames", "m")
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """What ``evaluate`` computes beyond the alignment."""
+
+    # RPE over consecutive matched poses (Sturm et al. 2012, sec. VII-A: delta = 1 frame measures the drift per
+    # frame; a delta in metres compares sequences recorded at different rates).
+    rpe_delta: float = 1
+    rpe_unit: str = "frames"
+    # TUM monoVO drifts (Engel et al. 2016, sec. 4): where the ground truth covers the whole run, the start and
+    # end segments are this share of the matched poses each. Ground truth that only covers a start and an end
+    # (a gap between its poses this many times longer than their median spacing) gives the segments itself.
+    drift_segment_fraction: float = 0.1
+    drift_gap_factor: float = 10.0
+    # The Sim(3) of a segment needs a few positions that span a volume (Umeyama 1991); fewer: no drift reported.
+    drift_min_segment_poses: int = 3
+
+
+# ------------------------------------------------------------------------------------------ statistics
+
+
+def error_statistics(errors: np.ndarray) -> dict[str, float]:
+    """rmse, mean, median, std, min and max of a set of errors (Zhang & Scaramuzza 2018, eq. 23)."""
+    errors = np.asarray(errors, dtype=float)
+    return {
+        "rmse": float(np.sqrt(np.mean(errors**2))),
+        "mean": float(np.mean(errors)),
+        "median": float(np.median(errors)),
+        "std": float(np.std(errors)),
+        "min": float(np.min(errors)),
+        "max": float(np.max(errors)),
+    }
+
+
+def rotation_angles(rotations: np.ndarray) -> np.ndarray:
+    """(N,) angles (rad) of (N, 3, 3) rotations, |log(R)| (accurate near 0 and pi, unlike acos((tr R - 1)/2))."""
+    return Rotation.from_matrix(rotations).magnitude()
+
+
+# ------------------------------------------------------------------------------------------------- ATE
+
+
+def ate_errors(aligned_estimate: Trajectory, ground_truth: Trajectory) -> np.ndarray:
+    """(N,) translational ATE of matched poses already aligned: ||trans(Q_i^-1 S P_i)|| = ||q_i - (s R p_i + t)||
+    (Sturm et al. 2012, eq. 7; its RMSE, eq. 8, is the ATE the TUM benchmark reports)."""
+    return np.linalg.norm(ground_truth.positions - aligned_estimate.positions, axis=1)
+
+
+# ------------------------------------------------------------------------------------------------- RPE
+
+
+def rpe_pairs(ground_truth: Trajectory, delta: float, unit: str) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i, j) of the relative poses: every i with j = i + delta frames, or with j the first pose at
+    least ``delta`` metres of ground-truth path after i (evo's ``all_pairs`` for frames)."""
+    n = len(ground_truth)
+    if unit == "frames":
+        step = int(delta)
+        if step < 1:
+            raise InputError(f"RPE delta must be at least 1 frame, not {delta}")
+        first = np.arange(max(n - step, 0))
+        return first, first + step
+    if unit != "m":
+        raise InputError(f"unknown RPE unit '{unit}' (known: {', '.join(RPE_UNITS)})")
+    steps = np.linalg.norm(np.diff(ground_truth.positions, axis=0), axis=1)
+    path = np.concatenate([[0.0], np.cumsum(steps)])  # metres travelled up to each pose
+    second = np.searchsorted(path, path + delta, side="left")
+    first = np.flatnonzero(second < n)
+    return first, second[first]
+
+
+def rpe_errors(
+    aligned_estimate: Trajectory, ground_truth: Trajectory, first: np.ndarray, second: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(translation m, rotation rad) of E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) (Sturm et al. 2012, eq. 1) for each
+    pair. The estimate must already carry the alignment's scale; its rotation and translation do not matter."""
+    estimated_motion = np.linalg.inv(aligned_estimate.poses[first]) @ aligned_estimate.poses[second]
+    true_motion = np.linalg.inv(ground_truth.poses[first]) @ ground_truth.poses[second]
+    errors = np.linalg.inv(true_motion) @ estimated_motion
+    return np.linalg.norm(errors[:, :3, 3], axis=1), rotation_angles(errors[:, :3, :3])
+
+
+# ------------------------------------------------------------------------------------ TUM monoVO drifts
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The drifts of Engel et al. 2016, sec. 4, from the start and end alignments S_s and S_e (eq. 6-7)."""
+
+    alignment_error: float  # e_align (m), eq. 8
+    rotation_drift_deg: float  # e_r: the angle of T_drift = S_e S_s^-1
+    scale_drift: float  # e_s: the scale of T_drift (1 = none; e_s and 1/e_s are the same amount)
+    translation_drift: float  # e_t: ||translation(T_drift)|| (m)
+    start: Alignment = field(repr=False)
+    end: Alignment = field(repr=False)
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "alignment_error": self.alignment_error,
+            "rotation_drift_deg": self.rotation_drift_deg,
+            "scale_drift": self.scale_drift,
+            "translation_drift": self.translation_drift,
+        }
+
+
+def tum_mono_drift(
+    estimate: Trajectory, start: tuple[Trajectory, Trajectory], end: tuple[Trajectory, Trajectory]
+) -> Drift:
+    """Drifts of a whole ``estimate`` from its matched (estimate, ground truth) ``start`` and ``end`` segments.
+
+    S_s = argmin_S sum_{i in start} ||S p_i - p^_i||^2 and S_e likewise over the end (eq. 6-7, Sim(3)); the
+    accumulated drift is T_drift = S_e S_s^-1, and e_align = sqrt(1/n sum_{i=1..n} ||S_s p_i - S_e p_i||^2)
+    over all n estimated positions (eq. 8): how far apart the two alignments put the trajectory, which weighs
+    scale, rotation and translation drift together."""
+    S_start, S_end = fit_alignment(*start, method="sim3"), fit_alignment(*end, method="sim3")
+    T_drift = S_end.transform @ sim3_inverse(S_start.transform)
+    scale = sim3_scale(T_drift)
+    gap = S_start.apply(estimate).positions - S_end.apply(estimate).positions
+    return Drift(
+        alignment_error=float(np.sqrt(np.mean(np.sum(gap**2, axis=1)))),
+        rotation_drift_deg=float(np.degrees(rotation_angles(T_drift[None, :3, :3] / scale)[0])),
+        scale_drift=scale,
+        translation_drift=float(np.linalg.norm(T_drift[:3, 3])),
+        start=S_start,
+        end=S_end,
+    )
+
+
+def drift_segments(matched_truth_timestamps: np.ndarray, config: EvalConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Index arrays of the start and end segments among matched poses: before and after the one long gap of a
+    ground truth that covers only both ends (TUM monoVO), else the first and last ``drift_segment_fraction``."""
+    spacing = np.diff(matched_truth_timestamps)
+    n = len(matched_truth_timestamps)
+    if len(spacing) and spacing.max() > config.drift_gap_factor * np.median(spacing):
+        split = int(np.argmax(spacing)) + 1
+        return np.arange(split), np.arange(split, n)
+    size = max(int(round(config.drift_segment_fraction * n)), config.drift_min_segment_poses)
+    return np.arange(min(size, n)), np.arange(max(n - size, 0), n)
+
+
+# ------------------------------------------------------------------------------------- frame-drop error
+
+
+@dataclass(frozen=True)
+class FrameDropError:
+    """FDMO sec. 5.3.2: the motion between the frames F_i before and F_j after a drop, estimated and true, and
+    100 |measured - true| / true for its translation distance and rotation angle."""
+
+    translation: float  # ||F_i - F_j|| estimated, in ground-truth units (see frame_drop_error)
+    true_translation: float
+    rotation_deg: float
+    true_rotation_deg: float
+
+    @property
+    def translation_percent(self) -> float:
+        return _percent_error(self.translation, self.true_translation)
+
+    @property
+    def rotation_percent(self) -> float:
+        return _percent_error(self.rotation_deg, self.true_rotation_deg)
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "translation": self.translation,
+            "true_translation": self.true_translation,
+            "translation_percent": self.translation_percent,
+            "rotation_deg": self.rotation_deg,
+            "true_rotation_deg": self.true_rotation_deg,
+            "rotation_percent": self.rotation_percent,
+        }
+
+
+def frame_drop_error(
+    estimate_before: np.ndarray,
+    estimate_after: np.ndarray,
+    truth_before: np.ndarray,
+    truth_after: np.ndarray,
+    scale: float = 1.0,
+) -> FrameDropError:
+    """The error of the motion over a frame drop, from the 4x4 T_world_cam of the frames before and after it.
+
+    Translation = ||F_i - F_j|| between camera centres; Rotation = cos^-1(2 <q_i, q_j>^2 - 1), the geodesic
+    angle between the unit quaternions, i.e. the angle of R_i^T R_j (FDMO sec. 5.3.2). A monocular estimate has
+    no metric scale, so its distance is multiplied by ``scale``: pass the Sim(3) alignment scale of the whole
+    run (``Alignment.scale``). One global scale, rather than one fitted around the drop, keeps the scale drift
+    the drop caused inside the error, which is what the experiment measures."""
+    return FrameDropError(
+        translation=scale * float(np.linalg.norm(estimate_after[:3, 3] - estimate_before[:3, 3])),
+        true_translation=float(np.linalg.norm(truth_after[:3, 3] - truth_before[:3, 3])),
+        rotation_deg=_quaternion_angle_deg(estimate_before[:3, :3], estimate_after[:3, :3]),
+        true_rotation_deg=_quaternion_angle_deg(truth_before[:3, :3], truth_after[:3, :3]),
+    )
+
+
+def _quaternion_angle_deg(R_i: np.ndarray, R_j: np.ndarray) -> float:
+    """cos^-1(2 <q_i, q_j>^2 - 1) in degrees (FDMO sec. 5.3.2); the sign of q does not matter."""
+    q_i, q_j = Rotation.from_matrix(np.stack([R_i, R_j])).as_quat()
+    cosine = np.clip(2.0 * float(q_i @ q_j) ** 2 - 1.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cosine)))
+
+
+def _percent_error(measured: float, truth: float) -> float:
+    """100 |measured - truth| / truth; infinite when the truth is 0 (no motion to compare with)."""
+    if truth == 0.0:
+        return 0.0 if measured == 0.0 else float("inf")
+    return 100.0 * abs(measured - truth) / truth
+
+
+# -------------------------------------------------------------------------------------------- evaluate
+
+
+def evaluate(
+    estimate: Trajectory,
+    ground_truth: Trajectory,
+    align: str = "sim3",
+    max_dt: float = DEFAULT_MAX_DT_S,
+    config: EvalConfig = EvalConfig(),
+) -> dict[str, Any]:
+    """All metrics of ``estimate`` against ``ground_truth`` as a JSON-serializable dict.
+
+    Poses are matched by timestamp (``max_dt`` s, one-to-one), the estimate aligned (``align``: "sim3", "se3" or
+    "none") on all matched positions, then: ATE statistics (m), RPE statistics (translation m, rotation deg),
+    and the TUM monoVO drifts where both segments have enough poses."""
+    matched_estimate, matched_truth = associate(estimate, ground_truth, max_dt)
+    alignment = fit_alignment(matched_estimate, matched_truth, align)
+    aligned = alignment.apply(matched_estimate)
+    first, second = rpe_pairs(matched_truth, config.rpe_delta, config.rpe_unit)
+    result: dict[str, Any] = {
+        "estimated_poses": len(estimate),
+        "ground_truth_poses": len(ground_truth),
+        "matched_poses": len(matched_estimate),
+        "max_dt": max_dt,
+        "align": align,
+        "scale": alignment.scale,
+        "alignment": alignment.transform.tolist(),
+        "ate": error_statistics(ate_errors(aligned, matched_truth)),
+        "rpe": _rpe_summary(aligned, matched_truth, first, second, config),
+    }
+    drift = _drift(estimate, matched_estimate, matched_truth, config)
+    if drift is not None:
+        result["drift"] = drift.as_dict()
+    return result
+
+
+def _rpe_summary(aligned, matched_truth, first, second, config: EvalConfig) -> dict[str, Any]:
+    summary: dict[str, Any] = {"delta": config.rpe_delta, "unit": config.rpe_unit, "pairs": len(first)}
+    if len(first):
+        translation, rotation = rpe_errors(aligned, matched_truth, first, second)
+        summary["translation"] = error_statistics(translation)
+        summary["rotation_deg"] = error_statistics(np.degrees(rotation))
+    return summary
+
+
+def _drift(estimate, matched_estimate, matched_truth, config: EvalConfig) -> Drift | None:
+    start, end = drift_segments(matched_truth.timestamps, config)
+    if min(len(start), len(end)) < config.drift_min_segment_poses:
+        return None
+    try:
+        return tum_mono_drift(
+            estimate,
+            (matched_estimate.subset(start), matched_truth.subset(start)),
+            (matched_estimate.subset(end), matched_truth.subset(end)),
+        )
+    except InputError:  # a segment in which the camera does not move has no Sim(3)
+        return None
