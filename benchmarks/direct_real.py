@@ -138,8 +138,8 @@ def run(folder: Path, max_frames: int | None, seed: int) -> None:
     print(f"{folder.name}: ATE {ate:.4f} m over {len(estimated)} poses; tracked {tracked}/{len(paths)}; "
           f"initialized at frame {init_frame}; {keyframes} keyframes; {failures} tracking failures; "
           f"{len(paths) / wall:.1f} fps overall")
-    print("  mean ms per tracked frame by stage: "
-          + ", ".join(f"{k} {np.mean(v):.1f}" for k, v in stage_totals.items()))
+    print("  ms per tracked frame by stage, mean/median: "
+          + ", ".join(f"{k} {np.mean(v):.1f}/{np.median(v):.1f}" for k, v in stage_totals.items()))
     if tracking_ms:
         print(f"  non-keyframe total {np.mean(tracking_ms):.1f} ms (median {np.median(tracking_ms):.1f}), "
               f"keyframe total {np.mean(keyframe_ms) if keyframe_ms else float('nan'):.1f} ms")

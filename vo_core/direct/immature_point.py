@@ -356,8 +356,10 @@ def optimize_inverse_depths(
     targets: list[ActivationTarget],
     config: ImmatureConfig,
     first_outlier_slack: float = 1.0,
+    iterations: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed.
+    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed;
+    ``iterations`` defaults to DSO's GN iterations on activation.
 
     Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
     ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
@@ -366,17 +368,20 @@ def optimize_inverse_depths(
     if n == 0 or not targets:
         return idepth, np.zeros(n, dtype=bool)
     in_bounds = np.ones((n, len(targets)), dtype=bool)  # a target once out of bounds stays out (ResState OOB)
-    energy, H, b, inlier = _depth_system(points, targets, idepth, in_bounds, first_outlier_slack, config)
+    camera = targets[0].level.camera  # one camera for all frames
+    pattern_uv = points.uv[:, None, :] + PATTERN[None]
+    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3).astype(np.float32)
+    energy, H, b, inlier = _depth_system(points, rays, targets, idepth, in_bounds, first_outlier_slack, config)
     usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
     lam = np.full(n, 0.1)
     running = usable.copy()
-    for _ in range(config.activation_gn_iterations):
+    for _ in range(config.activation_gn_iterations if iterations is None else iterations):
         if not np.any(running):
             break
         with np.errstate(divide="ignore", invalid="ignore"):
             step = np.where(running, b / (H * (1.0 + lam)), 0.0)
         trial = idepth - step
-        e_new, H_new, b_new, inl_new = _depth_system(points, targets, trial, in_bounds, 1.0, config)
+        e_new, H_new, b_new, inl_new = _depth_system(points, rays, targets, trial, in_bounds, 1.0, config)
         usable &= ~running | (H_new >= config.min_idepth_hessian)
         accept = running & (e_new < energy)
         idepth = np.where(accept, trial, idepth)
@@ -388,38 +393,42 @@ def optimize_inverse_depths(
     return idepth, usable
 
 
-def _depth_system(points: PatternPoints, targets, idepth, in_bounds, outlier_slack, config):
-    """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target."""
+def _depth_system(points: PatternPoints, rays, targets, idepth, in_bounds, outlier_slack, config):
+    """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target.
+
+    ``rays`` (n, 8, 3) float32 are the host's K^-1 (u, v, 1) of the pattern pixels; ``in_bounds`` (n, targets)
+    is updated: a pattern leaving a target once is not evaluated there again."""
     n = len(idepth)
     energy, H, b = np.zeros(n), np.zeros(n), np.zeros(n)
     inlier = np.zeros((n, len(targets)), dtype=bool)
-    host_uv = points.uv[:, None, :] + PATTERN[None]  # (n, 8, 2)
-    weight_sq = points.weight**2
+    weight_sq = (points.weight**2).astype(np.float32)
     threshold = points.energy_threshold * outlier_slack
+    depth32 = idepth.astype(np.float32)
     for j, target in enumerate(targets):
+        rows = np.flatnonzero(in_bounds[:, j])
+        if len(rows) == 0:
+            continue
         camera = target.level.camera
-        rays = camera.unproject(host_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
-        R, t = target.T_target_host[:3, :3], target.T_target_host[:3, 3]
-        warped = rays @ R.T + idepth[:, None, None] * t
-        z = warped[..., 2]
+        R, t = target.T_target_host[:3, :3].astype(np.float32), target.T_target_host[:3, 3].astype(np.float32)
+        warped = rays[rows] @ R.T
+        warped += depth32[rows, None, None] * t
         with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = warped[..., 0] / z, warped[..., 1] / z
+            inverse_z = 1.0 / warped[..., 2]
+        u, v = warped[..., 0] * inverse_z, warped[..., 1] * inverse_z
         Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
-        inside = camera.in_image(np.stack([Ku.ravel(), Kv.ravel()], 1), border=1.0).reshape(n, -1) & (z > 0)
+        inside = (Ku >= 1) & (Kv >= 1) & (Ku <= camera.width - 2) & (Kv <= camera.height - 2) & (inverse_z > 0)
         hit = target.level.sample(np.where(inside, Ku, -10.0), np.where(inside, Kv, -10.0))
-        ok = in_bounds[:, j] & np.all(inside & np.isfinite(hit[..., 0]), axis=1)
-        in_bounds[:, j] = ok
+        ok = np.all(inside & np.isfinite(hit[..., 0]), axis=1)
+        in_bounds[rows, j] = ok
+        rows, hit, u, v, inverse_z = rows[ok], hit[ok], u[ok], v[ok], inverse_z[ok]
         factor, offset = target.affine
-        residual = np.nan_to_num(hit[..., 0] - (factor * points.color + offset))
+        residual = hit[..., 0] - (factor * points.color[rows] + offset)
         w = huber_weight(residual, config.huber_threshold)
-        e = np.sum(weight_sq * w * residual**2 * (2.0 - w), axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            d_idepth = np.nan_to_num(
-                hit[..., 1] * camera.fx * (t[0] - t[2] * u) / z + hit[..., 2] * camera.fy * (t[1] - t[2] * v) / z
-            )
-        hw = w * weight_sq
-        H += np.where(ok, np.sum(hw * d_idepth**2, axis=1), 0.0)
-        b += np.where(ok, np.sum(hw * residual * d_idepth, axis=1), 0.0)
-        inlier[:, j] = ok & (e <= threshold)
-        energy += np.where(ok, np.minimum(e, threshold), 0.0)
+        e = np.sum(weight_sq[rows] * w * residual**2 * (2.0 - w), axis=1)
+        d_idepth = (hit[..., 1] * camera.fx * (t[0] - t[2] * u) + hit[..., 2] * camera.fy * (t[1] - t[2] * v)) * inverse_z
+        hw = w * weight_sq[rows]
+        H[rows] += np.sum(hw * d_idepth**2, axis=1)
+        b[rows] += np.sum(hw * residual * d_idepth, axis=1)
+        inlier[rows, j] = e <= threshold[rows]
+        energy[rows] += np.minimum(e, threshold[rows])
     return energy, H, b, inlier

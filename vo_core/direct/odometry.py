@@ -467,7 +467,7 @@ class DirectOdometry:
             pattern, inside = PatternPoints.sample(keyframe.pyramid, keyframe.active_uv, self.config.immature)
             idepth, usable = optimize_inverse_depths(
                 pattern, keyframe.active_idepth[inside], self._activation_targets(keyframe, new_keyframe),
-                self.config.immature,
+                self.config.immature, iterations=self.config.refine_iterations,
             )
             removed += len(inside) - int(usable.sum())
             keyframe.active_uv, keyframe.active_idepth = pattern.uv[usable], idepth[usable]
