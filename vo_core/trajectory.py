@@ -13,7 +13,8 @@ Three file formats are read and written (``FORMATS``):
   a 2014 epoch time to ~0.2 microseconds, so writing back may move a nanosecond stamp by that much.
 
 Quaternions are normalized and rotation matrices projected onto SO(3) when read: files written with few
-decimals still give exact rotations. Malformed lines, non-finite values and timestamps that do not increase
+decimals still give exact rotations. A TUM or EuRoC line whose pose is all NaN (TUM monoVO's groundtruthSync.txt
+marks frames without ground truth so) is no pose and is skipped. Malformed lines, non-finite values and timestamps that do not increase
 raise ``InputError`` naming the file and line.
 """
 
@@ -145,6 +146,10 @@ class _Rows:
     def __len__(self) -> int:
         return len(self.values)
 
+    def subset(self, keep: np.ndarray) -> "_Rows":
+        indices = np.flatnonzero(keep)
+        return _Rows([self.values[i] for i in indices], [self.line_numbers[i] for i in indices])
+
 
 def _data_rows(path: Path) -> _Rows:
     rows = _Rows([], [])
@@ -170,7 +175,7 @@ def _split(line: str) -> list[str]:
 
 
 def _numbers(rows: _Rows, path: Path, count: int, exact: bool, first_column_ns: bool = False) -> np.ndarray:
-    """(N, count) floats. Each line must hold ``count`` numbers (at least ``count`` unless ``exact``), all finite.
+    """(N, count) floats. Each line must hold ``count`` numbers (at least ``count`` unless ``exact``).
 
     With ``first_column_ns`` the first column, integer nanoseconds, becomes seconds without passing through a
     float of 19 digits (which would round it to ~256 ns before the division)."""
@@ -185,9 +190,13 @@ def _numbers(rows: _Rows, path: Path, count: int, exact: bool, first_column_ns: 
                 table[row, 0] = _seconds_from_ns(fields[0])
         except ValueError:
             raise InputError(f"{path}:{number}: not a number in '{' '.join(fields)}'") from None
-        if not np.all(np.isfinite(table[row])):
-            raise InputError(f"{path}:{number}: non-finite value in '{' '.join(fields)}'")
     return table
+
+
+def _check_finite(table: np.ndarray, rows: _Rows, path: Path) -> None:
+    bad = np.flatnonzero(~np.all(np.isfinite(table), axis=1))
+    if len(bad):
+        raise InputError(f"{path}:{rows.line_numbers[bad[0]]}: non-finite value in '{' '.join(rows.values[bad[0]])}'")
 
 
 def _seconds_from_ns(field: str) -> float:
@@ -201,6 +210,12 @@ def _seconds_from_ns(field: str) -> float:
 def _from_timestamped_quaternions(rows: _Rows, path: Path, format: str) -> Trajectory:
     euroc = format == "euroc"
     table = _numbers(rows, path, _FIELDS_PER_LINE[format], exact=not euroc, first_column_ns=euroc)
+    # TUM monoVO's groundtruthSync.txt has a line for every frame, all NaN where no pose is known: not a pose.
+    known = ~np.all(np.isnan(table[:, 1:]), axis=1) & np.isfinite(table[:, 0])
+    if not np.any(known):
+        raise InputError(f"{path}: no line has a pose (all NaN)")
+    table, rows = table[known], rows.subset(known)
+    _check_finite(table, rows, path)
     timestamps, positions = table[:, 0], table[:, 1:4]
     # TUM stores (qx, qy, qz, qw), EuRoC (qw, qx, qy, qz); scipy wants (x, y, z, w).
     quaternions_xyzw = table[:, [5, 6, 7, 4]] if euroc else table[:, 4:8]
@@ -216,6 +231,7 @@ def _from_timestamped_quaternions(rows: _Rows, path: Path, format: str) -> Traje
 
 def _poses_from_matrices(rows: _Rows, path: Path) -> np.ndarray:
     table = _numbers(rows, path, _FIELDS_PER_LINE["kitti"], exact=True)
+    _check_finite(table, rows, path)
     poses = np.tile(np.eye(4), (len(table), 1, 1))
     poses[:, :3, :] = table.reshape(-1, 3, 4)
     rotations = poses[:, :3, :3]
@@ -249,6 +265,7 @@ def _kitti_timestamps(path: Path, count: int, timestamps: np.ndarray | None) -> 
         return np.arange(count) * KITTI_FRAME_PERIOD_S
     rows = _data_rows(times_file)
     times = _numbers(rows, times_file, 1, exact=False)[:, 0]
+    _check_finite(times[:, None], rows, times_file)
     if len(times) != count:
         raise InputError(f"{times_file}: {len(times)} times for the {count} poses of {path.name}")
     _check_increasing(times, times_file, rows.line_numbers)
