@@ -124,8 +124,8 @@ class CoarseInitializer:
     def _new_level(self, pyramid: ImagePyramid, level: int, uv: np.ndarray) -> _LevelState:
         n = len(uv)
         pattern_uv = uv[:, None, :] + PATTERN[None]
-        color = pyramid[level].sample_intensity(pattern_uv[..., 0], pattern_uv[..., 1]).astype(float)
-        rays = pyramid[level].camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
+        color = pyramid[level].sample_intensity(pattern_uv[..., 0], pattern_uv[..., 1])
+        rays = pyramid[level].camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3).astype(np.float32)
         ones = np.ones(n)
         return _LevelState(
             uv=uv, rays=rays, color=color, parent=np.full(n, -1), neighbours=np.full((n, 1), -1),
@@ -233,45 +233,50 @@ class CoarseInitializer:
         camera = pyramid[level].camera
         n = len(state)
         R, t = T[:3, :3], T[:3, 3]
-        gain, offset = np.exp(affine[0]), affine[1]
-        idepth = state.idepth_new[:, None]
-        warped = state.rays @ R.T + idepth[..., None] * t  # (N, 8, 3)
-        z = warped[..., 2]
+        f32 = np.float32
+        gain, offset = float(np.exp(affine[0])), float(affine[1])
+        idepth = state.idepth_new.astype(f32)[:, None]
+        warped = state.rays @ R.T.astype(f32)  # (N, 8, 3) float32: R x + t d, the point times d
+        warped += idepth[..., None] * t.astype(f32)
         with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = warped[..., 0] / z, warped[..., 1] / z
-            new_idepth = idepth / z
+            inverse_z = 1.0 / warped[..., 2]
+        u, v = warped[..., 0] * inverse_z, warped[..., 1] * inverse_z
+        new_idepth = idepth * inverse_z
         Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
         inside = (Ku > 1) & (Kv > 1) & (Ku < camera.width - 2) & (Kv < camera.height - 2) & (new_idepth > 0)
         hit = pyramid[level].sample(np.where(inside, Ku, -10.0), np.where(inside, Kv, -10.0))
         valid = np.all(inside & np.isfinite(hit[..., 0]) & np.isfinite(state.color), axis=1)
-        hit = np.nan_to_num(hit)
-        residual = hit[..., 0] - gain * state.color - offset
+        residual = np.where(valid[:, None], hit[..., 0] - gain * state.color - offset, 0.0).astype(f32)
         w = huber_weight(residual, self.huber)
         energy = np.sum(w * residual**2 * (2.0 - w), axis=1)
         good = valid & state.good & (energy <= self.outlier_energy)
-        sqrt_w = np.where(w < 1.0, np.sqrt(w), w)
+        # From here on only the good points: the Jacobians (calcResAndGS) with sqrt Huber weights.
+        g = np.flatnonzero(good)
+        u, v, inverse_z, new_idepth, hit, residual = u[g], v[g], inverse_z[g], new_idepth[g], hit[g], residual[g]
+        sqrt_w = np.sqrt(w[g])
         dx, dy = sqrt_w * hit[..., 1] * camera.fx, sqrt_w * hit[..., 2] * camera.fy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            du_dd, dv_dd = (t[0] - t[2] * u) / z, (t[1] - t[2] * v) / z
-        J = np.stack(
-            [
-                new_idepth * dx, new_idepth * dy, -new_idepth * (u * dx + v * dy),
-                -u * v * dx - (1 + v * v) * dy, (1 + u * u) * dx + u * v * dy, -v * dx + u * dy,
-                -sqrt_w * gain * state.color, -sqrt_w,
-            ],
-            axis=-1,
-        )  # (N, 8, 8): point, pattern pixel, parameter
+        du_dd, dv_dd = (t[0] - t[2] * u) * inverse_z, (t[1] - t[2] * v) * inverse_z
+        J = np.empty((len(g), len(PATTERN), 8), dtype=f32)  # point, pattern pixel, parameter
+        J[..., 0] = new_idepth * dx
+        J[..., 1] = new_idepth * dy
+        J[..., 2] = -new_idepth * (u * dx + v * dy)
+        J[..., 3] = -u * v * dx - (1 + v * v) * dy
+        J[..., 4] = (1 + u * u) * dx + u * v * dy
+        J[..., 5] = -v * dx + u * dy
+        J[..., 6] = -sqrt_w * gain * state.color[g]
+        J[..., 7] = -sqrt_w
         r = sqrt_w * residual
         d = dx * du_dd + dy * dv_dd  # derivative of the residual by the inverse depth
         with np.errstate(divide="ignore"):
             step_px = 1.0 / np.hypot(du_dd * camera.fx, dv_dd * camera.fy)
-        state.max_step = np.where(good, np.nanmin(np.where(np.isfinite(step_px), step_px, np.inf), axis=1), 1e10)
-        Jg, rg, dg = J[good].reshape(-1, 8), r[good].reshape(-1), d[good]
-        H, b = Jg.T @ Jg, Jg.T @ rg
+        state.max_step = np.full(n, 1e10)
+        state.max_step[g] = np.min(np.where(np.isfinite(step_px), step_px, np.inf), axis=1)
+        flat = J.reshape(-1, 8)
+        H, b = (flat.T @ flat).astype(float), (flat.T @ r.reshape(-1)).astype(float)
         state.jb_new[:] = 0.0
-        state.jb_new[good, :8] = np.einsum("npk,np->nk", J[good], dg)
-        state.jb_new[good, 8] = np.sum(r[good] * dg, axis=1)
-        state.jb_new[good, 9] = np.sum(dg * dg, axis=1)
+        state.jb_new[g, :8] = np.einsum("npk,np->nk", J, d)
+        state.jb_new[g, 8] = np.sum(r * d, axis=1)
+        state.jb_new[g, 9] = np.sum(d * d, axis=1)
         state.good_new = good
         state.energy_new = state.energy.copy()
         state.energy_new[good, 0] = energy[good]
