@@ -35,11 +35,14 @@ class EvalConfig:
     # frame; a delta in metres compares sequences recorded at different rates).
     rpe_delta: float = 1
     rpe_unit: str = "frames"
-    # TUM monoVO drifts (Engel et al. 2016, sec. 4): where the ground truth covers the whole run, the start and
-    # end segments are this share of the matched poses each. Ground truth that only covers a start and an end
-    # (a gap between its poses this many times longer than their median spacing) gives the segments itself.
-    drift_segment_fraction: float = 0.1
+    # TUM monoVO drifts (Engel et al. 2016, sec. 4) need ground truth over a start and an end segment. Ground
+    # truth that only covers both ends (a gap between its poses this many times longer than their median
+    # spacing, as in TUM monoVO) gives the segments itself. Over ground truth that covers the whole run, the
+    # segments are this share of the matched poses each, if set; unset, no drifts are reported there, since
+    # short segments with little motion give ill-conditioned Sim(3)s (the paper asks for segments with
+    # "a significant amount of camera translation").
     drift_gap_factor: float = 10.0
+    drift_segment_fraction: float | None = None
     # The Sim(3) of a segment needs a few positions that span a volume (Umeyama 1991); fewer: no drift reported.
     drift_min_segment_poses: int = 3
 
@@ -153,15 +156,18 @@ def tum_mono_drift(
     )
 
 
-def drift_segments(matched_truth_timestamps: np.ndarray, config: EvalConfig) -> tuple[np.ndarray, np.ndarray]:
+def drift_segments(matched_truth_timestamps: np.ndarray, config: EvalConfig) -> tuple[np.ndarray, np.ndarray] | None:
     """Index arrays of the start and end segments among matched poses: before and after the one long gap of a
-    ground truth that covers only both ends (TUM monoVO), else the first and last ``drift_segment_fraction``."""
+    ground truth that covers only both ends (TUM monoVO), else the first and last ``drift_segment_fraction``
+    of them; None when neither applies."""
     spacing = np.diff(matched_truth_timestamps)
     n = len(matched_truth_timestamps)
     if len(spacing) and spacing.max() > config.drift_gap_factor * np.median(spacing):
         split = int(np.argmax(spacing)) + 1
         return np.arange(split), np.arange(split, n)
-    size = max(int(round(config.drift_segment_fraction * n)), config.drift_min_segment_poses)
+    if config.drift_segment_fraction is None:
+        return None
+    size = int(round(config.drift_segment_fraction * n))
     return np.arange(min(size, n)), np.arange(max(n - size, 0), n)
 
 
@@ -247,7 +253,7 @@ def evaluate(
 
     Poses are matched by timestamp (``max_dt`` s, one-to-one), the estimate aligned (``align``: "sim3", "se3" or
     "none") on all matched positions, then: ATE statistics (m), RPE statistics (translation m, rotation deg),
-    and the TUM monoVO drifts where both segments have enough poses."""
+    and the TUM monoVO drifts where the ground truth (or ``config``) gives start and end segments."""
     matched_estimate, matched_truth = associate(estimate, ground_truth, max_dt)
     alignment = fit_alignment(matched_estimate, matched_truth, align)
     aligned = alignment.apply(matched_estimate)
@@ -279,9 +285,10 @@ def _rpe_summary(aligned, matched_truth, first, second, config: EvalConfig) -> d
 
 
 def _drift(estimate, matched_estimate, matched_truth, config: EvalConfig) -> Drift | None:
-    start, end = drift_segments(matched_truth.timestamps, config)
-    if min(len(start), len(end)) < config.drift_min_segment_poses:
+    segments = drift_segments(matched_truth.timestamps, config)
+    if segments is None or min(len(segment) for segment in segments) < config.drift_min_segment_poses:
         return None
+    start, end = segments
     try:
         return tum_mono_drift(
             estimate,
