@@ -14,7 +14,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vo_core.datasets.base import (
     ImageFiles,
@@ -29,7 +28,7 @@ from vo_core.datasets.image_folder import IMAGE_SUFFIXES, image_files
 from vo_core.datasets.textfiles import check_increasing, read_table
 from vo_core.errors import InputError
 from vo_core.geometry.photometric import load_photometric_calibration
-from vo_core.trajectory import Trajectory
+from vo_core.trajectory import Trajectory, read_trajectory
 
 NAME = "tum_mono"
 LOOKS_FOR = "times.txt + camera.txt + images/ or images.zip (TUM monoVO)"
@@ -112,14 +111,6 @@ class ZipImages:
 def _ground_truth(path: Path, timestamps: np.ndarray) -> Trajectory | None:
     if not path.is_file():
         return None
-    rows = read_table(path, 8, allow_nan=True)  # timestamp tx ty tz qx qy qz qw
-    rows = rows[np.all(np.isfinite(rows), axis=1)]
-    if len(rows) == 0:
-        raise InputError(f"{path}: no line has a pose (all NaN)")
-    check_increasing(rows[:, 0], path)
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:8]).as_matrix()  # scalar-last (x, y, z, w), as TUM writes
-    poses[:, :3, 3] = rows[:, 1:4]
-    ground_truth = Trajectory(rows[:, 0], poses)
+    ground_truth = read_trajectory(path, format="tum")  # drops the all-NaN lines of frames without a pose
     check_ground_truth_overlap(ground_truth, timestamps, path)
     return ground_truth
