@@ -1,0 +1,148 @@
+"""Bootstrap: the first landmarks from two frames a few apart (paper 003 II-A).
+
+Corners detected in the first frame are tracked frame by frame with KLT; from ``min_frame_gap`` frames on,
+each new frame is tried as the second view: essential matrix with RANSAC, the one of its four
+decompositions that puts the points in front of both cameras (recoverPose), triangulation. A pair whose
+median bearing angle is too small is rejected and the next frame tried (the baseline grows with time).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3, se3_inverse
+from vo_core.klt.config import BootstrapConfig, CornerConfig, TriangulationConfig
+from vo_core.klt.tracking import KltTracker, detect_corners
+from vo_core.klt.triangulation import bearing_angles, triangulate
+
+
+@dataclass
+class TwoViewResult:
+    """The relative pose of the second view (unit baseline) and the tracks it explains."""
+
+    T_first_second: np.ndarray  # 4x4, camera-to-camera, |t| = 1
+    inliers: np.ndarray  # (N,) bool over the input matches: consistent with the essential matrix
+    points_first: np.ndarray  # (N, 3) triangulated points in the first camera (rows valid where ``triangulated``)
+    triangulated: np.ndarray  # (N,) bool: inlier, in front of both views, reprojecting well
+    median_parallax_deg: float  # median bearing angle of the triangulated points
+
+
+def two_view_geometry(
+    camera: PinholeCamera,
+    uv_first: np.ndarray,
+    uv_second: np.ndarray,
+    config: BootstrapConfig,
+    triangulation: TriangulationConfig,
+) -> TwoViewResult | None:
+    """Relative pose and structure from matched pixels of two calibrated views, or None if no model fits."""
+    K = camera.K
+    E, mask = cv2.findEssentialMat(
+        uv_first, uv_second, K, method=cv2.RANSAC, prob=config.ransac_confidence,
+        threshold=config.ransac_threshold_px,
+    )
+    if E is None or E.shape[0] < 3:
+        return None
+    # With degenerate data findEssentialMat may stack several solutions; the first is the best scored one.
+    _, R, t, pose_mask = cv2.recoverPose(E[:3], uv_first, uv_second, K, mask=mask.copy())
+    inliers = pose_mask.ravel() > 0
+    # recoverPose returns x_second = R x_first + t.
+    T_first_second = se3_inverse(se3(R, t.ravel()))
+    points, valid = triangulate(
+        camera, np.eye(4), uv_first, T_first_second, uv_second,
+        triangulation.max_reprojection_px, triangulation.min_depth,
+    )
+    triangulated = inliers & valid
+    if not triangulated.any():
+        return None
+    angles = bearing_angles(camera, np.eye(4), uv_first[triangulated], T_first_second, uv_second[triangulated])
+    return TwoViewResult(T_first_second, inliers, points, triangulated, float(np.degrees(np.median(angles))))
+
+
+@dataclass
+class Bootstrap:
+    """A successful bootstrap, in the frame of its first view."""
+
+    first_frame_index: int
+    first_image: np.ndarray
+    second_frame_index: int
+    T_first_second: np.ndarray  # unit baseline
+    uv_first: np.ndarray  # (N, 2) every track that survived, in the first view
+    uv_second: np.ndarray  # (N, 2) and in the second
+    points_first: np.ndarray  # (N, 3) positions in the first camera
+    triangulated: np.ndarray  # (N,) bool: which rows have a position (landmarks); the others are candidates
+    median_parallax_deg: float
+
+
+class Bootstrapper:
+    """Follows the corners of a first frame until a later frame gives a good two-view reconstruction."""
+
+    def __init__(
+        self, camera: PinholeCamera, config: BootstrapConfig, corners: CornerConfig,
+        triangulation: TriangulationConfig, tracker: KltTracker,
+    ):
+        self.camera = camera
+        self.config = config
+        self.corners = corners
+        self.triangulation = triangulation
+        self.tracker = tracker
+        self.first_index = -1
+        self.first_image: np.ndarray | None = None
+        self.previous_image: np.ndarray | None = None
+        self.uv_first = np.empty((0, 2), np.float32)
+        self.uv_current = np.empty((0, 2), np.float32)
+        self.last_failure = ""
+
+    def start(self, frame_index: int, image: np.ndarray) -> None:
+        """Make ``image`` the first view: detect its corners."""
+        self.first_index = frame_index
+        self.first_image = self.previous_image = image
+        self.uv_first = detect_corners(image, self.corners, np.empty((0, 2)), self.corners.max_corners)
+        self.uv_current = self.uv_first.copy()
+
+    def step(self, frame_index: int, image: np.ndarray) -> Bootstrap | None:
+        """Track into ``image`` and try it as the second view. None while waiting; ``last_failure`` says why,
+        and ``should_restart`` whether this first frame should be given up."""
+        uv, valid = self.tracker.track(self.previous_image, image, self.uv_current)
+        self.previous_image = image
+        self.uv_first, self.uv_current = self.uv_first[valid], uv[valid]
+        gap = frame_index - self.first_index
+        if len(self.uv_current) < self.config.min_tracks:
+            self.last_failure = f"only {len(self.uv_current)} corners tracked since frame {self.first_index}"
+            return None
+        if gap < self.config.min_frame_gap:
+            self.last_failure = ""
+            return None
+        geometry = two_view_geometry(self.camera, self.uv_first, self.uv_current, self.config, self.triangulation)
+        problem = self._problem(geometry)
+        self.last_failure = problem or ""
+        if problem:
+            return None
+        return Bootstrap(
+            self.first_index, self.first_image, frame_index, geometry.T_first_second,
+            self.uv_first[geometry.inliers], self.uv_current[geometry.inliers],
+            geometry.points_first[geometry.inliers], geometry.triangulated[geometry.inliers],
+            geometry.median_parallax_deg,
+        )
+
+    def should_restart(self, frame_index: int) -> bool:
+        """Too few tracks left, or waited too long for enough parallax: start over from this frame."""
+        return (
+            len(self.uv_current) < self.config.min_tracks
+            or frame_index - self.first_index >= self.config.max_frame_gap
+        )
+
+    def _problem(self, geometry: TwoViewResult | None) -> str | None:
+        if geometry is None:
+            return "no essential matrix"
+        inlier_ratio = geometry.inliers.mean()
+        if inlier_ratio < self.config.min_inlier_ratio:
+            return f"essential matrix explains only {100 * inlier_ratio:.0f}% of the tracks"
+        if geometry.median_parallax_deg < self.config.min_median_parallax_deg:
+            return f"median parallax {geometry.median_parallax_deg:.2f} deg is too small"
+        if geometry.triangulated.sum() < self.config.min_landmarks:
+            return f"only {geometry.triangulated.sum()} points triangulated"
+        return None

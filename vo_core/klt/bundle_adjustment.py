@@ -1,0 +1,181 @@
+"""Sliding-window bundle adjustment: keyframe poses and landmark positions that minimize the robust sum of
+squared reprojection errors (Triggs et al. 2000; paper 003 II-C proposes it against scale drift, holding
+the first poses of the window).
+
+Levenberg-Marquardt on the normal equations with the Schur complement of the points (Triggs et al. 2000,
+section 6.1; what g2o and Ceres do for bundle adjustment), and the Huber loss by iteratively reweighted
+least squares. Each point has at most one observation per keyframe, so the point-pose coupling is a dense
+(points x keyframes) table of 6x3 blocks and the reduced camera system is a small dense matrix.
+
+Why not scipy.optimize.least_squares: its trust-region solver with a sparse Jacobian (LSMR inner solves)
+stalled on perturbed windows with a robust loss (4.5 px RMS left after 50 evaluations on a window that this
+solver brings to the 0.5 px noise floor in a few iterations; see tests/test_klt_bundle_adjustment.py).
+
+Poses are world-to-camera transforms updated on the left, T_cam_world <- exp(delta) T_cam_world.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import block_diag
+
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_exp, se3_inverse
+from vo_core.klt.config import BundleAdjustmentConfig
+
+LAMBDA_INITIAL = 1e-4  # Levenberg-Marquardt damping, relative to the diagonal of the normal equations
+LAMBDA_DOWN = 1.0 / 3.0  # after an accepted step
+LAMBDA_UP = 4.0  # after a rejected one
+MAX_REJECTED_STEPS = 8  # in a row: the minimum is reached (to the solver's precision)
+MIN_RELATIVE_DECREASE = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
+DIAGONAL_FLOOR = 1e-9
+
+
+@dataclass
+class WindowProblem:
+    """Keyframe poses, landmark positions and the observations that tie them together."""
+
+    poses_world_cam: np.ndarray  # (F, 4, 4) T_world_cam of each keyframe
+    fixed: np.ndarray  # (F,) bool: poses held constant (the oldest ones: gauge and scale)
+    points_world: np.ndarray  # (M, 3)
+    observation_pose: np.ndarray  # (L,) index into poses; at most one observation per (pose, point)
+    observation_point: np.ndarray  # (L,) index into points
+    observation_uv: np.ndarray  # (L, 2) measured pixel
+
+
+@dataclass
+class WindowSolution:
+    poses_world_cam: np.ndarray
+    points_world: np.ndarray
+    errors_before: np.ndarray  # (L,) reprojection error (px) of each observation before
+    errors_after: np.ndarray  # (L,) and after
+    iterations: int
+
+
+def _huber_cost_and_weights(errors: np.ndarray, k: float) -> tuple[float, np.ndarray]:
+    """Huber cost sum rho(e) with rho(e) = e^2 (e <= k), 2 k e - k^2 (e > k), and the IRLS weights
+    w = rho'(e) / (2 e) = min(1, k / e) that make the weighted Gauss-Newton step minimize it."""
+    inlier = errors <= k
+    cost = np.where(inlier, errors**2, 2.0 * k * errors - k**2).sum()
+    weights = np.where(inlier, 1.0, k / np.maximum(errors, 1e-12))
+    return float(cost), weights
+
+
+class _Window:
+    """The reprojection model of a window, evaluated at given poses and points."""
+
+    def __init__(self, camera: PinholeCamera, problem: WindowProblem):
+        self.camera = camera
+        self.problem = problem
+        self.num_poses = len(problem.fixed)
+        self.num_points = len(problem.points_world)
+
+    def project(self, T_cam_world: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(camera-frame points (L, 3), residuals (L, 2)) of every observation."""
+        problem = self.problem
+        R = T_cam_world[problem.observation_pose, :3, :3]
+        t = T_cam_world[problem.observation_pose, :3, 3]
+        p = np.einsum("nij,nj->ni", R, points[problem.observation_point]) + t
+        c = self.camera
+        with np.errstate(divide="ignore", invalid="ignore"):
+            predicted = np.stack([c.fx * p[:, 0] / p[:, 2] + c.cx, c.fy * p[:, 1] / p[:, 2] + c.cy], axis=1)
+        return p, predicted - problem.observation_uv
+
+    def jacobians(self, T_cam_world: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """d(residual)/d(pose increment) (L, 2, 6) and d(residual)/d(point) (L, 2, 3)."""
+        c = self.camera
+        inv_z = 1.0 / p[:, 2]
+        n = len(p)
+        J_proj = np.zeros((n, 2, 3))  # pinhole projection derivative d(u, v)/d(x, y, z)
+        J_proj[:, 0, 0] = c.fx * inv_z
+        J_proj[:, 0, 2] = -c.fx * p[:, 0] * inv_z**2
+        J_proj[:, 1, 1] = c.fy * inv_z
+        J_proj[:, 1, 2] = -c.fy * p[:, 1] * inv_z**2
+        d_pose = np.zeros((n, 3, 6))  # d(exp(delta) p)/d(v, w) at delta = 0 is [I, -[p]x]
+        d_pose[:, :, :3] = np.eye(3)
+        d_pose[:, 0, 4], d_pose[:, 0, 5] = p[:, 2], -p[:, 1]
+        d_pose[:, 1, 3], d_pose[:, 1, 5] = -p[:, 2], p[:, 0]
+        d_pose[:, 2, 3], d_pose[:, 2, 4] = p[:, 1], -p[:, 0]
+        R = T_cam_world[self.problem.observation_pose, :3, :3]
+        return J_proj @ d_pose, J_proj @ R
+
+    def step(
+        self, T_cam_world: np.ndarray, p: np.ndarray, residuals: np.ndarray, weights: np.ndarray, damping: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The damped Gauss-Newton step (pose increments (F, 6), point increments (M, 3)) by the Schur
+        complement: S dp = b_p - W V^-1 b_l, then dl = V^-1 (b_l - W^T dp)."""
+        problem = self.problem
+        J_pose, J_point = self.jacobians(T_cam_world, p)
+        J_pose[problem.fixed[problem.observation_pose]] = 0.0
+        wJp = weights[:, None, None] * J_pose
+        wJl = weights[:, None, None] * J_point
+        F, M = self.num_poses, self.num_points
+        a, j = problem.observation_pose, problem.observation_point
+
+        H_pp = np.zeros((F, 6, 6))
+        np.add.at(H_pp, a, np.einsum("nri,nrj->nij", wJp, J_pose))
+        V = np.zeros((M, 3, 3))
+        np.add.at(V, j, np.einsum("nri,nrj->nij", wJl, J_point))
+        b_p = np.zeros((F, 6))
+        np.add.at(b_p, a, -np.einsum("nri,nr->ni", wJp, residuals))
+        b_l = np.zeros((M, 3))
+        np.add.at(b_l, j, -np.einsum("nri,nr->ni", wJl, residuals))
+        W = np.zeros((M, F, 6, 3))  # the point-pose blocks, one observation each
+        W[j, a] = np.einsum("nri,nrj->nij", wJp, J_point)
+
+        # Marquardt's damping scales the diagonal; the floor keeps a block regular that no residual reaches.
+        H_pp += (damping * np.einsum("fii->fi", H_pp) + DIAGONAL_FLOOR)[:, :, None] * np.eye(6)
+        V += (damping * np.einsum("mii->mi", V) + DIAGONAL_FLOOR)[:, :, None] * np.eye(3)
+        V_inv = np.linalg.inv(V)
+        Y = W @ V_inv[:, None]  # (M, F, 6, 3)
+        # Sum over points of Y_m W_m^T, as one matrix product over the stacked (point, coordinate) axis.
+        Y_rows = Y.transpose(1, 2, 0, 3).reshape(6 * F, 3 * M)
+        W_rows = W.transpose(1, 2, 0, 3).reshape(6 * F, 3 * M)
+        S = block_diag(*H_pp) - Y_rows @ W_rows.T
+        rhs = b_p.reshape(-1) - Y_rows @ b_l.reshape(-1)
+        free = np.repeat(~problem.fixed, 6)
+        delta_pose = np.zeros(6 * F)
+        delta_pose[free] = np.linalg.solve(S[np.ix_(free, free)], rhs[free])
+        delta_pose = delta_pose.reshape(F, 6)
+        W_T_delta = (delta_pose.reshape(1, -1) @ W_rows).reshape(M, 3)
+        delta_point = np.einsum("mij,mj->mi", V_inv, b_l - W_T_delta)
+        return delta_pose, delta_point
+
+
+def adjust_window(camera: PinholeCamera, problem: WindowProblem, config: BundleAdjustmentConfig) -> WindowSolution:
+    """Minimize sum rho_Huber(|pi(T_cam_world X) - uv|) over the free poses and all points."""
+    window = _Window(camera, problem)
+    T_cam_world = np.stack([se3_inverse(T) for T in problem.poses_world_cam])
+    points = problem.points_world.copy()
+    p, residuals = window.project(T_cam_world, points)
+    errors_before = np.linalg.norm(residuals, axis=1)
+    cost, weights = _huber_cost_and_weights(errors_before, config.huber_px)
+    damping = LAMBDA_INITIAL
+    rejected = 0
+    iterations = 0
+    while iterations < config.max_iterations and rejected < MAX_REJECTED_STEPS:
+        iterations += 1
+        delta_pose, delta_point = window.step(T_cam_world, p, residuals, weights, damping)
+        candidate_T = np.stack([se3_exp(d) @ T for d, T in zip(delta_pose, T_cam_world)])
+        candidate_points = points + delta_point
+        candidate_p, candidate_residuals = window.project(candidate_T, candidate_points)
+        errors = np.linalg.norm(candidate_residuals, axis=1)
+        if np.any(~(candidate_p[:, 2] > 0)) or not np.all(np.isfinite(errors)):
+            candidate_cost = np.inf  # a point crossed behind a camera: too long a step
+        else:
+            candidate_cost, candidate_weights = _huber_cost_and_weights(errors, config.huber_px)
+        if candidate_cost >= cost:
+            damping *= LAMBDA_UP
+            rejected += 1
+            continue
+        decrease = (cost - candidate_cost) / cost
+        T_cam_world, points, p, residuals = candidate_T, candidate_points, candidate_p, candidate_residuals
+        cost, weights = candidate_cost, candidate_weights
+        damping *= LAMBDA_DOWN
+        rejected = 0
+        if decrease < MIN_RELATIVE_DECREASE:
+            break
+    poses = np.stack([se3_inverse(T) for T in T_cam_world])
+    return WindowSolution(poses, points, errors_before, np.linalg.norm(residuals, axis=1), iterations)
