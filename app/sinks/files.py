@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from vo_core.config import Config, dump_config
 from vo_core.events import Event, FrameResult, MapSnapshot
+from vo_core.trajectory import NUMBER_FORMAT, Trajectory, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -24,6 +25,7 @@ EVENTS_FILE = "events.jsonl"
 METRICS_FILE = "metrics.json"
 CONFIG_FILE = "config.yaml"
 RESULT_FILES = (TRAJECTORY_FILE, KEYFRAMES_FILE, EVENTS_FILE, METRICS_FILE, CONFIG_FILE)
+TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"  # the header vo_core.trajectory.write_trajectory writes
 
 
 class FilesSink:
@@ -42,6 +44,8 @@ class FilesSink:
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
         self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in
                        (TRAJECTORY_FILE, KEYFRAMES_FILE, EVENTS_FILE)}
+        self._files[TRAJECTORY_FILE].write(TUM_HEADER)
+        self._files[KEYFRAMES_FILE].write(TUM_HEADER)
         dump_config(config, self.out_dir / CONFIG_FILE)
 
     # ------------------------------------------------------------------------------------ Sink protocol
@@ -72,9 +76,12 @@ class FilesSink:
         if not dated:
             return
         self._files[KEYFRAMES_FILE].close()
-        lines = "".join(tum_line(timestamp, keyframe_poses[i]) + "\n" for timestamp, i in dated)
-        write_text_atomically(self.out_dir / KEYFRAMES_FILE, lines)
-        self._files[KEYFRAMES_FILE] = open(self.out_dir / KEYFRAMES_FILE, "a", buffering=1)
+        keyframes = Trajectory(np.array([t for t, _ in dated]), np.array([keyframe_poses[i] for _, i in dated]))
+        path = self.out_dir / KEYFRAMES_FILE
+        partial = path.with_name(path.name + ".partial")
+        write_trajectory(partial, keyframes, "tum")
+        os.replace(partial, path)  # readers never see a half-written file
+        self._files[KEYFRAMES_FILE] = open(path, "a", buffering=1)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         write_text_atomically(self.out_dir / METRICS_FILE, to_json(metrics, indent=2) + "\n")
@@ -86,9 +93,9 @@ class FilesSink:
 
 
 def tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
-    """``timestamp tx ty tz qx qy qz qw`` (TUM RGB-D format), the precision of vo_core.trajectory's writer."""
-    quaternion_xyzw = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat()
-    return " ".join(f"{value:.9f}" for value in (timestamp, *T_world_cam[:3, 3], *quaternion_xyzw))
+    """One line of vo_core.trajectory's TUM files (``timestamp tx ty tz qx qy qz qw``), for writing as we go."""
+    quaternion_xyzw = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat(canonical=True)
+    return " ".join(NUMBER_FORMAT % value for value in (timestamp, *T_world_cam[:3, 3], *quaternion_xyzw))
 
 
 def write_text_atomically(path: Path, text: str) -> None:

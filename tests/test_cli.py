@@ -1,0 +1,285 @@
+"""``fdmo run | eval | info`` and the pipeline behind ``run``, on tiny dataset folders the tests write.
+
+Most checks run ``main(argv)`` in process with a scripted front end standing in for the odometry (so they
+test the app, fast); a few run the real command in a subprocess, with a real method.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import vo_core.system
+from app.cli import main
+from app.pipeline import run_sequence
+from app.player import Player
+from app.progress import ProgressBar
+from app.sinks.files import RESULT_FILES
+from vo_core.config import load_config
+from vo_core.datasets import open_sequence
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.geometry.lie import se3_exp, sim3, so3_exp
+from vo_core.trajectory import Trajectory, read_trajectory, write_trajectory
+
+REPO = Path(__file__).resolve().parents[1]
+WIDTH, HEIGHT, FRAMES = 160, 120, 12
+VAMR_INTERVAL_S = 0.1  # the VAMR layout has no timestamps: frame index x 0.1 s
+ESTIMATE_SCALE = 2.0  # the scripted front end's poses are the truth at another scale (monocular)
+
+
+def true_pose(i: int) -> np.ndarray:
+    return se3_exp(np.array([0.05 * i, 0.01 * i, 0.02 * i, 0.0, 0.01 * i, 0.0]))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    """A VAMR-layout folder: textured images sliding sideways, K.txt, poses.txt (ground truth)."""
+    root = tmp_path_factory.mktemp("vamr_tiny")
+    (root / "images").mkdir()
+    texture = cv2.GaussianBlur(np.random.default_rng(0).uniform(0, 255, (HEIGHT, WIDTH + 3 * FRAMES)), (0, 0), 1.5)
+    for i in range(FRAMES):
+        cv2.imwrite(str(root / "images" / f"img_{i:05d}.png"), texture[:, 3 * i:3 * i + WIDTH].astype(np.uint8))
+    np.savetxt(root / "K.txt", [[100.0, 0, (WIDTH - 1) / 2], [0, 100.0, (HEIGHT - 1) / 2], [0, 0, 1]])
+    np.savetxt(root / "poses.txt", [true_pose(i)[:3].reshape(-1) for i in range(FRAMES)])
+    return root
+
+
+class ScriptedFrontEnd:
+    """Stands in for a method: initializes at frame 2, reports the true pose (scaled), a keyframe every 3."""
+
+    instances: list["ScriptedFrontEnd"] = []
+
+    def __init__(self, interrupt_at: int | None = None):
+        self.seen: list[int] = []
+        self.keyframes: dict[int, np.ndarray] = {}
+        self.interrupt_at = interrupt_at
+        ScriptedFrontEnd.instances.append(self)
+
+    def process(self, frame) -> FrameResult:
+        assert frame.image.shape == (HEIGHT, WIDTH)
+        if frame.index == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.seen.append(frame.index)
+        if len(self.seen) < 3:
+            return FrameResult(frame.index, frame.timestamp, None, False, timings_ms={"track": 1.0})
+        T = true_pose(frame.index)
+        T[:3, 3] *= ESTIMATE_SCALE
+        keyframe = len(self.seen) % 3 == 0
+        if keyframe:
+            self.keyframes[frame.index] = T
+        events = [Event(EventKind.INITIALIZATION_SUCCEEDED, frame.index, frame.timestamp)] if len(self.seen) == 3 else []
+        return FrameResult(frame.index, frame.timestamp, T, True, keyframe, timings_ms={"track": 2.0}, events=events)
+
+    def map_snapshot(self) -> MapSnapshot:
+        return MapSnapshot(keyframe_poses=dict(self.keyframes))
+
+
+@pytest.fixture
+def scripted(monkeypatch):
+    """Every Odometry built during the test gets a ScriptedFrontEnd; returns the list of them (the last one ran
+    the sequence: ``fdmo run`` builds one first to check the method) and the options of the next one."""
+    ScriptedFrontEnd.instances = []
+    options: dict = {}
+    monkeypatch.setattr(vo_core.system, "make_front_end", lambda config, camera: ScriptedFrontEnd(**options))
+    return ScriptedFrontEnd.instances, options
+
+
+def run_cli(capsys, *argv) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def events_of(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+
+
+# ------------------------------------------------------------------------------------------------ run
+
+
+def test_run_writes_the_five_files_and_they_parse_back(dataset, tmp_path, scripted, capsys):
+    out = tmp_path / "results"
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--set", "seed=3")
+    assert code == 0 and stdout == ""
+    assert all((out / name).is_file() for name in RESULT_FILES)
+
+    trajectory = read_trajectory(out / "trajectory.tum")
+    assert len(trajectory) == FRAMES - 2
+    np.testing.assert_allclose(trajectory.timestamps, np.arange(2, FRAMES) * VAMR_INTERVAL_S, atol=1e-9)
+    assert len(read_trajectory(out / "keyframes.tum")) == len(scripted[0][-1].keyframes)
+    assert [e["kind"] for e in events_of(out)] == ["initialization_succeeded"]
+    assert set(events_of(out)[0]) == {"frame", "timestamp", "kind", "details"}
+
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["frames"], metrics["tracked_frames"], metrics["initialization_frame"]) == (FRAMES, 10, 2)
+    assert metrics["status"] == "completed" and metrics["fps"] > 0
+    assert metrics["timing_ms"]["track"] == {"mean": pytest.approx(1.0 + 10 / 12), "median": 2.0, "max": 2.0}
+    assert set(metrics["timing_ms"]["step"]) == {"mean", "median", "max"}
+    # The scripted poses are the truth at twice the scale: Sim(3) alignment makes them exact.
+    assert metrics["evaluation"]["ate"]["rmse"] < 1e-6
+    config = load_config(out / "config.yaml")
+    assert (config.method, config.seed) == ("klt", 3)
+
+
+def test_dropped_frames_never_reach_the_odometry_and_an_event_says_so(dataset, tmp_path, scripted, capsys):
+    out = tmp_path / "results"
+    code, _, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--drop", "5:3", "--drop", "10:1")
+    assert code == 0
+    assert scripted[0][-1].seen == [0, 1, 2, 3, 4, 8, 9, 11]
+    drops = [e for e in events_of(out) if e["kind"] == "frames_dropped"]
+    assert [(e["frame"], e["details"]["count"], e["details"]["last_frame"]) for e in drops] == [(5, 3, 7), (10, 1, 10)]
+    assert json.loads((out / "metrics.json").read_text())["dropped_frames"] == 4
+
+
+def test_start_and_end_cut_the_sequence_and_keep_frame_numbers(dataset, tmp_path, scripted, capsys):
+    code, _, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--quiet", "--start", "4", "--end", "9")
+    assert code == 0
+    assert scripted[0][-1].seen == [4, 5, 6, 7, 8]
+
+
+def test_an_unreadable_image_is_skipped_with_an_event(dataset, tmp_path, scripted, capsys):
+    broken = tmp_path / "broken"
+    subprocess.run(["cp", "-r", str(dataset), str(broken)], check=True)
+    (broken / "images" / "img_00004.png").write_bytes(b"not a png")
+    out = tmp_path / "results"
+    assert run_cli(capsys, "run", broken, "--out", out, "--no-rrd", "--quiet")[0] == 0
+    assert 4 not in scripted[0][-1].seen and len(scripted[0][-1].seen) == FRAMES - 1
+    skipped = [e for e in events_of(out) if e["kind"] == "frame_skipped"]
+    assert len(skipped) == 1 and "img_00004.png" in skipped[0]["details"]["error"]
+
+
+def test_an_interrupted_run_leaves_valid_files_and_exits_130(dataset, tmp_path, scripted, capsys):
+    scripted[1]["interrupt_at"] = 7
+    out = tmp_path / "results"
+    code, _, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet")
+    assert code == 130 and "interrupted" in stderr
+    assert len(read_trajectory(out / "trajectory.tum")) == 7 - 2
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["processed_frames"] == 7
+
+
+def test_a_restart_starts_a_fresh_odometry_and_rewrites_the_files(dataset, tmp_path, scripted):
+    sequence = open_sequence(dataset)
+    player = Player(sequence)
+
+    class RestartAtFrame5:
+        def on_frame(self, frame, result):
+            if frame.index == 5 and len(scripted[0]) == 1:
+                player.request_restart()
+
+        def on_event(self, event): ...
+        def on_map(self, snapshot): ...
+        def close(self): ...
+
+    summary = run_sequence(sequence, load_config(), tmp_path / "r", [RestartAtFrame5()], player=player)
+    first, second = scripted[0]
+    assert first.seen == [0, 1, 2, 3, 4, 5] and second.seen == list(range(FRAMES))
+    assert summary.status == "completed" and summary.tracked_frames == 10
+    assert len(read_trajectory(tmp_path / "r" / "trajectory.tum")) == FRAMES - 2
+
+
+# ------------------------------------------------------------------------------------------ bad input
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["run", "{missing}"], "no such file"),
+        (["run", "{dataset}", "--method", "orbslam"], "invalid choice"),
+        (["run", "{dataset}", "--method", "fdmo"], "not implemented"),
+        (["run", "{dataset}", "--set", "seed"], "expected key=value"),
+        (["run", "{dataset}", "--set", "klt.nonsense=1"], "unknown config key"),
+        (["run", "{dataset}", "--drop", "5"], "FRAME:COUNT"),
+        (["run", "{dataset}", "--format", "nonsense"], "unknown layout"),
+        (["info", "{empty}"], "unknown dataset layout"),
+        (["eval", "{missing}", "{missing}"], "missing"),
+        (["frobnicate"], "invalid choice"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line(argv, message, dataset, tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("nothing to see")
+    paths = {"dataset": dataset, "missing": tmp_path / "missing", "empty": tmp_path / "empty"}
+    out = ["--out", tmp_path / "out"] if argv[0] == "run" else []
+    code, stdout, stderr = run_cli(capsys, *[a.format(**paths) for a in argv], *out)
+    assert code == 2
+    assert len(stderr.strip().splitlines()) == 1 and stderr.startswith("fdmo: error:") and message in stderr
+    assert not (tmp_path / "out").exists()  # nothing half-written
+
+
+# ------------------------------------------------------------------------------------------ eval, info
+
+
+@pytest.fixture
+def trajectory_files(tmp_path) -> tuple[Path, Path]:
+    """Ground truth, and an estimate that is the truth seen through a similarity (scale 0.5)."""
+    timestamps = np.arange(40) * 0.05
+    truth = np.array([se3_exp(np.array([np.sin(t), 0.3 * t, np.cos(2 * t), 0.1 * t, 0.2 * np.sin(t), 0.0]))
+                      for t in timestamps])
+    S = sim3(0.5, so3_exp(np.array([0.1, -0.4, 0.2])), np.array([1.0, 2.0, -0.5]))
+    estimate = truth.copy()
+    estimate[:, :3, :3] = S[:3, :3] / 0.5 @ truth[:, :3, :3]
+    estimate[:, :3, 3] = truth[:, :3, 3] @ S[:3, :3].T + S[:3, 3]
+    write_trajectory(tmp_path / "gt.tum", Trajectory(timestamps, truth), "tum")
+    write_trajectory(tmp_path / "est.tum", Trajectory(timestamps, estimate), "tum")
+    return tmp_path / "est.tum", tmp_path / "gt.tum"
+
+
+def test_eval_prints_the_ate_after_alignment(trajectory_files, capsys):
+    estimate, truth = trajectory_files
+    code, stdout, _ = run_cli(capsys, "eval", estimate, truth)
+    assert code == 0 and "ate" in stdout.lower() and "rmse" in stdout
+    _, aligned, _ = run_cli(capsys, "eval", estimate, truth, "--json")
+    _, unaligned, _ = run_cli(capsys, "eval", estimate, truth, "--align", "none", "--json")
+    assert json.loads(aligned)["ate"]["rmse"] < 1e-6
+    assert json.loads(unaligned)["ate"]["rmse"] > 0.5
+
+
+def test_info_prints_what_the_loader_found(dataset, capsys):
+    code, stdout, _ = run_cli(capsys, "info", dataset)
+    assert code == 0 and "layout: vamr" in stdout
+    description = json.loads(run_cli(capsys, "info", dataset, "--json")[1])
+    assert (description["layout"], description["frames"], description["resolution"]) == ("vamr", FRAMES, [WIDTH, HEIGHT])
+    assert description["ground_truth"]["poses"] == FRAMES
+
+
+def test_progress_bar_reports_rate_tracked_fraction_and_last_event():
+    stream = io.StringIO()
+    progress = ProgressBar(4, stream=stream)
+    progress.on_frame(None, FrameResult(0, 0.0, None, False))
+    progress.on_event(Event(EventKind.FRAMES_DROPPED, 1, 0.1, {"count": 2}))
+    progress.on_event(Event(EventKind.KEYFRAME_ADDED, 3, 0.3))
+    progress.on_frame(None, FrameResult(3, 0.3, np.eye(4), True))
+    progress.close()
+    last = stream.getvalue().splitlines()[-1]
+    assert "4/4 frames" in last and "fps" in last and "tracked  50%" in last and "keyframe_added@3" in last
+
+
+# ------------------------------------------------------------------------------------------ subprocess
+
+
+def test_python_dash_m_app_runs_a_real_method_end_to_end(dataset, tmp_path):
+    out = tmp_path / "results"
+    completed = subprocess.run(
+        [sys.executable, "-m", "app", "run", str(dataset), "--method", "direct", "--out", str(out),
+         "--no-rrd", "--quiet", "--end", "6"],
+        cwd=REPO, capture_output=True, text=True, timeout=120,
+    )
+    assert completed.returncode == 0, completed.stderr
+    assert all((out / name).is_file() for name in RESULT_FILES)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method"] == "direct" and metrics["processed_frames"] == 6
+
+
+def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
+    completed = subprocess.run([sys.executable, "-m", "app", "run", str(tmp_path / "nowhere")],
+                               cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 2
+    assert completed.stderr.strip().splitlines() == [f"fdmo: error: {tmp_path / 'nowhere'}: no such file or folder"]
