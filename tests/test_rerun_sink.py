@@ -1,0 +1,162 @@
+"""The Rerun sink: a short synthetic run into a .rrd, read back with rerun.chunk.RrdReader."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+
+rr = pytest.importorskip("rerun")
+
+from app.sinks import rerun_sink as sink_module  # noqa: E402
+from app.sinks.rerun_sink import RerunSink  # noqa: E402
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot  # noqa: E402
+from vo_core.geometry.camera import PinholeCamera  # noqa: E402
+from vo_core.geometry.lie import sim3, so3_exp, transform_points  # noqa: E402
+from vo_core.trajectory import Trajectory  # noqa: E402
+
+CAMERA = PinholeCamera(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59.5)
+FRAMES = 12
+LOST_FRAME = 5  # no pose: tracking failed there
+KEYFRAMES = (0, 4, 8)
+PERIOD_S = 0.05
+# The ground truth is the estimate under this similarity: once aligned it must fall back onto the estimate.
+S_GT_EST = sim3(2.5, so3_exp(np.array([0.1, -0.3, 0.2])), np.array([1.0, -2.0, 0.5]))
+
+
+def camera_pose(index: int) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.array([0.0, 0.05 * index, 0.0]))
+    T[:3, 3] = [0.1 * index, 0.02 * index**1.5, 0.05 * np.sin(index)]
+    return T
+
+
+def ground_truth() -> Trajectory:
+    timestamps = np.arange(FRAMES) * PERIOD_S
+    poses = np.array([camera_pose(i) for i in range(FRAMES)])
+    poses[:, :3, 3] = transform_points(S_GT_EST, poses[:, :3, 3])
+    return Trajectory(timestamps, poses)
+
+
+def synthetic_image(index: int) -> np.ndarray:
+    image = np.zeros((CAMERA.height, CAMERA.width), np.uint8)
+    cv2.circle(image, (40 + 5 * index, 60), 20, 255, -1)
+    return image
+
+
+def run_synthetic(sink: RerunSink) -> None:
+    rng = np.random.default_rng(3)
+    for i in range(FRAMES):
+        timestamp = i * PERIOD_S
+        lost = i == LOST_FRAME
+        events = [Event(EventKind.KEYFRAME_ADDED, i, timestamp)] if i in KEYFRAMES else []
+        if i == 0:
+            events.append(Event(EventKind.INITIALIZATION_SUCCEEDED, i, timestamp, {"points": 120}))
+        if lost:
+            events.append(Event(EventKind.TRACKING_FAILED, i, timestamp, {"reason": "too few points"}))
+        for event in events:
+            sink.on_event(event)
+        result = FrameResult(
+            i, timestamp, None if lost else camera_pose(i), tracked=not lost, is_keyframe=i in KEYFRAMES,
+            rmse_before=None if lost else 8.0, rmse_after=None if lost else 6.0, num_inliers=40 + i,
+            points_2d=rng.uniform(0, 100, (30, 2)), timings_ms={"track": 1.5, "total": 2.0}, events=events,
+        )
+        sink.on_frame(SimpleNamespace(index=i, timestamp=timestamp, image=synthetic_image(i)), result)
+        if result.is_keyframe:
+            sink.on_map(MapSnapshot(
+                direct_points_world=rng.normal(size=(50, 3)), direct_inverse_depths=rng.uniform(0.2, 2.0, 50),
+                feature_points_world=rng.normal(size=(20, 3)), keyframe_poses={k: camera_pose(k) for k in KEYFRAMES if k <= i},
+            ))
+    sink.on_event(Event(EventKind.FRAMES_DROPPED, FRAMES, FRAMES * PERIOD_S, {"count": 3}))
+    sink.close()
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> dict[str, list]:
+    """The chunks of the recording, grouped by entity path."""
+    path = tmp_path_factory.mktemp("rerun") / "run.rrd"
+    run_synthetic(RerunSink(str(path), CAMERA, ground_truth=ground_truth()))
+    chunks: dict[str, list] = {}
+    for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
+        chunks.setdefault(chunk.entity_path, []).append(chunk)
+    return chunks
+
+
+def column(chunks: list, name: str) -> list:
+    """One column of an entity's temporal chunks, rows in frame order."""
+    rows = []
+    for chunk in chunks:
+        table = chunk.to_record_batch().to_pydict()
+        if name in table and "frame" in table:
+            rows += sorted(zip(table["frame"], table[name]), key=lambda row: row[0])
+    return [value for _, value in sorted(rows, key=lambda row: row[0])]
+
+
+def test_entities_are_the_documented_ones(recording):
+    expected = {sink_module.CAMERA, sink_module.IMAGE, sink_module.TRACKED_PIXELS, sink_module.ESTIMATE,
+                sink_module.RECENT, sink_module.GROUND_TRUTH, sink_module.DIRECT_POINTS, sink_module.FEATURE_POINTS,
+                sink_module.KEYFRAMES, sink_module.EVENT_MARKERS, sink_module.EVENT_LOG,
+                "plots/tracking/rmse_ratio", "plots/counts/inliers", "plots/timing_ms/track"}
+    assert {"/" + entity for entity in expected} <= set(recording)
+
+
+def test_camera_pose_is_logged_for_each_posed_frame_on_the_frame_timeline(recording):
+    posed = [i for i in range(FRAMES) if i != LOST_FRAME]
+    assert column(recording["/world/camera"], "frame") == posed
+    translations = column(recording["/world/camera"], "Transform3D:translation")
+    np.testing.assert_allclose(np.array(translations).reshape(-1, 3), [camera_pose(i)[:3, 3] for i in posed],
+                               atol=1e-6)
+    times = column(recording["/world/camera"], "time")
+    np.testing.assert_allclose([t.total_seconds() for t in times], np.array(posed) * PERIOD_S, atol=1e-6)
+
+
+def test_images_are_jpeg_on_every_frame(recording):
+    media_types = column(recording["/world/camera/image"], "EncodedImage:media_type")
+    assert [m for m in media_types if m is not None] == [["image/jpeg"]] * FRAMES
+    blob = bytes(column(recording["/world/camera/image"], "EncodedImage:blob")[-1][0])
+    decoded = cv2.imdecode(np.frombuffer(blob, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert decoded.shape == (CAMERA.height, CAMERA.width)
+    assert np.abs(decoded.astype(int) - synthetic_image(FRAMES - 1)).mean() < 3.0
+
+
+def test_events_are_logged_with_levels(recording):
+    texts = column(recording["/events"], "TextLog:text")
+    levels = column(recording["/events"], "TextLog:level")
+    lines = dict(zip((text[0] for text in texts), (level[0] for level in levels)))
+    assert lines["frame 0 initialization_succeeded (points=120)"] == "INFO"
+    assert lines["frame 5 tracking_failed (reason=too few points)"] == "ERROR"
+    assert lines["frame 12 frames_dropped (count=3)"] == "INFO"
+    assert sum(text[0].endswith("keyframe_added") for text in texts) == len(KEYFRAMES)
+
+
+def test_event_markers_sit_on_the_trajectory(recording):
+    markers = column(recording["/world/events"], "Points3D:positions")[-1]
+    labels = column(recording["/world/events"], "Points3D:labels")[-1]
+    assert labels == ["initialization_succeeded", "tracking_failed"]  # keyframes are routine: not marked
+    # The failure at the lost frame is marked where the camera last was.
+    np.testing.assert_allclose(markers[1], camera_pose(LOST_FRAME - 1)[:3, 3], atol=1e-6)
+
+
+def test_ground_truth_is_aligned_onto_the_estimate(recording):
+    strip = np.array(column(recording["/world/trajectory/ground_truth"], "LineStrips3D:strips")[-1][0])
+    posed = [i for i in range(FRAMES) if i != LOST_FRAME]
+    np.testing.assert_allclose(strip, [camera_pose(i)[:3, 3] for i in posed], atol=1e-5)
+
+
+def test_full_path_at_keyframes_and_scalars(recording):
+    assert column(recording["/world/trajectory/estimate"], "frame")[: len(KEYFRAMES)] == list(KEYFRAMES)
+    ratios = column(recording["/plots/tracking/rmse_ratio"], "Scalars:scalars")
+    np.testing.assert_allclose(np.ravel(ratios), 0.75)
+    assert column(recording["/plots/counts/inliers"], "frame") == list(range(FRAMES))
+    colors = column(recording["/world/map/direct_points"], "Points3D:colors")[-1]
+    assert len(set(colors)) > 5  # colored by inverse depth, not one color
+
+
+def test_restart_starts_a_fresh_path(tmp_path):
+    sink = RerunSink(None, CAMERA)
+    for index in (0, 1, 2, 0, 1):  # a restart: the frames start over
+        sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
+    assert len(sink.path) == 2
+    sink.close()
