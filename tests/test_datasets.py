@@ -177,6 +177,13 @@ def test_euroc_timestamps_in_seconds_and_ground_truth_converted_to_the_camera(tm
     np.testing.assert_allclose(sequence.ground_truth.poses[0], T_world_body @ T_BS, atol=1e-9)
 
 
+def test_distorted_images_give_an_irradiance_rectified_in_float(tmp_path):
+    frame = open_sequence(make_euroc(tmp_path / "seq", coefficients="-0.28, 0.07, 0.0002, 0.00002"))[0]
+    assert frame.irradiance.dtype == np.float32 and frame.irradiance.shape == frame.image.shape
+    assert np.any(frame.irradiance != np.round(frame.irradiance))  # not the rounded uint8 image
+    assert np.max(np.abs(frame.irradiance - frame.image)) <= 0.5 + 1e-3
+
+
 def test_euroc_opened_at_mav0_and_native_ground_truth_csv(tmp_path):
     root = make_euroc(tmp_path / "MH_01")
     gt_dir = root / "mav0" / "state_groundtruth_estimate0"

@@ -26,9 +26,9 @@ import cv2
 import numpy as np
 
 from vo_core.errors import InputError
-from vo_core.geometry.camera import PinholeCamera, camera_to_dict
+from vo_core.geometry.camera import CameraModel, PinholeCamera, camera_to_dict
 from vo_core.geometry.photometric import PhotometricCalibration
-from vo_core.geometry.undistorter import Undistorter
+from vo_core.geometry.undistorter import OutputSpec, Undistorter
 from vo_core.trajectory import Trajectory
 
 
@@ -43,9 +43,10 @@ class Frame:
     """One image of a sequence, rectified to ``Sequence.camera``.
 
     ``image`` is uint8 gray (None when the file was unreadable and the policy is "skip"; ``error`` then says
-    why). ``irradiance`` is the float32 image the direct method tracks: G^-1(image) / V where a photometric
-    calibration exists, otherwise simply ``image`` as float32, computed on access. ``exposure_ms`` is the
-    exposure time where the dataset records it (TUM monoVO), else None.
+    why). ``irradiance`` is the float32 image the direct method tracks: G^-1(raw) / V rectified in float where
+    there is a photometric calibration or a distortion to remove, otherwise simply ``image`` as float32,
+    converted on access. ``exposure_ms`` is the exposure time where the dataset records it (TUM monoVO), else
+    None.
     """
 
     index: int
@@ -140,7 +141,7 @@ class LoadOptions:
     """How ``open_sequence`` was asked to open a sequence (passed on to every layout's loader)."""
 
     camera_file: Path | None = None
-    undistort_output: Any = "crop"  # "crop" | "full" | "none" | (width, height): DSO's choices
+    undistort_output: OutputSpec = "crop"  # "crop" | "full" | "none" | (width, height): DSO's choices
     on_bad_image: str = "skip"  # or "abort"
     read_ahead: int = 8
 
@@ -162,14 +163,14 @@ class Sequence:
         name: str,
         layout: str,
         root: Path,
-        raw_camera,
+        raw_camera: CameraModel,
         images: ImageSource,
         timestamps: np.ndarray,
         options: LoadOptions,
         exposures_ms: np.ndarray | None = None,
         photometric: PhotometricCalibration | None = None,
         ground_truth: Trajectory | None = None,
-        calibration_output=None,
+        calibration_output: OutputSpec | None = None,
     ):
         if len(images) == 0:
             raise InputError(f"{root}: no images")
@@ -251,10 +252,11 @@ class Sequence:
             if self.options.on_bad_image == "abort":
                 raise InputError(problem)
             return Frame(index, timestamp, None, exposure, path, error=problem)
-        corrected = None
-        if not self.photometric.is_identity:
-            corrected = self._undistorter.rectify(self.photometric.correct(raw))
-        return Frame(index, timestamp, self._undistorter.rectify(raw), exposure, path, None, corrected)
+        irradiance = None
+        if not (self.photometric.is_identity and self._undistorter.is_identity):
+            # rectified in float, as DSO does, not from the rounded uint8 image
+            irradiance = self._undistorter.rectify(self.photometric.correct(raw))
+        return Frame(index, timestamp, self._undistorter.rectify(raw), exposure, path, None, irradiance)
 
     def _problem_with(self, raw: np.ndarray | None, path: str) -> str | None:
         if raw is None:
@@ -296,7 +298,7 @@ class Sequence:
         return description
 
 
-def _undistorter_output(requested, calibration_output):
+def _undistorter_output(requested: OutputSpec, calibration_output: OutputSpec | None) -> OutputSpec:
     """The calibration file's own target (TUM monoVO: 1280x1024 cropped to 640x480) unless the caller asked for
     something other than the default "crop"."""
     if isinstance(requested, str) and requested == "crop" and calibration_output is not None:
