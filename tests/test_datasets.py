@@ -230,6 +230,14 @@ def test_kitti_camera_from_calib_and_poses_by_sequence_number(tmp_path):
     np.testing.assert_allclose(sequence.ground_truth.timestamps, sequence.timestamps)
 
 
+def test_kitti_colour_camera_uses_p2(tmp_path):
+    root = make_kitti(tmp_path / "seq")
+    (root / "image_0").rename(root / "image_2")
+    p2 = "7.0e+02 0 6.0e+02 4.5e+01 0 7.0e+02 1.8e+02 0 0 0 1 0"
+    (root / "calib.txt").write_text((root / "calib.txt").read_text() + f"P2: {p2}\n")
+    assert open_sequence(root).camera == PinholeCamera(62, 19, 700.0, 700.0, 600.0, 180.0)
+
+
 def test_kitti_missing_or_malformed_calibration_is_refused(tmp_path):
     root = make_kitti(tmp_path / "seq")
     (root / "calib.txt").write_text("P0: 1 2 3\n")
@@ -286,6 +294,16 @@ def test_image_folder_without_camera_or_with_malformed_yaml_is_refused(tmp_path)
         open_sequence(tmp_path)
 
 
+def test_image_folder_times_file_must_match_the_images(tmp_path):
+    write_images([tmp_path / f"{i}.png" for i in range(3)], 32, 24)
+    (tmp_path / "camera.yaml").write_text(CAMERA_YAML)
+    (tmp_path / "times.txt").write_text("5.0\n5.5\n6.25\n")
+    np.testing.assert_allclose(open_sequence(tmp_path).timestamps, [5.0, 5.5, 6.25])
+    (tmp_path / "times.txt").write_text("5.0\n5.5\n")
+    with pytest.raises(InputError, match=r"times\.txt: 2 timestamps for 3 images"):
+        open_sequence(tmp_path)
+
+
 def test_camera_file_option_replaces_the_dataset_calibration(tmp_path):
     root = make_kitti(tmp_path / "seq")
     camera_file = tmp_path / "mine.yaml"
@@ -308,6 +326,9 @@ def test_video_timestamps_from_the_container_and_backward_reads(tmp_path):
     brightness = [float(f.image.mean()) for f in sequence]
     np.testing.assert_allclose(brightness, np.arange(5) * 40, atol=3)
     assert abs(sequence[1].image.mean() - 40) < 3  # going back reopens the video
+    (tmp_path / "walk.yaml").unlink()
+    with pytest.raises(InputError, match=r"walk\.avi: a video needs a camera file"):
+        open_sequence(video)
 
 
 # ----------------------------------------------------------------------------------------------- registry
@@ -346,7 +367,7 @@ def test_cut_stride_and_reverse_keep_original_indices_and_timestamps(tmp_path):
     (root / "camera.yaml").write_text(CAMERA_YAML)
     sequence = open_sequence(root)
     view = sequence.cut(2, 9, stride=3)
-    assert [f.index for f in view] == [2, 5, 8] and len(view) == 3
+    assert [f.index for f in view] == [2, 5, 8] and len(view) == 3 and list(view.indices) == [2, 5, 8]
     np.testing.assert_allclose(view.timestamps, [0.2, 0.5, 0.8])
     backwards = view.reversed()
     assert [f.index for f in backwards] == [8, 5, 2] and backwards[0].index == 8
