@@ -10,6 +10,8 @@ import io
 import json
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import cv2
@@ -183,6 +185,33 @@ def test_a_restart_starts_a_fresh_odometry_and_rewrites_the_files(dataset, tmp_p
     assert first.seen == [0, 1, 2, 3, 4, 5] and second.seen == list(range(FRAMES))
     assert summary.status == "completed" and summary.tracked_frames == 10
     assert len(read_trajectory(tmp_path / "r" / "trajectory.tum")) == FRAMES - 2
+
+
+def wait_until(condition, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request(dataset, tmp_path, scripted):
+    sequence = open_sequence(dataset)
+    player = Player(sequence)
+    summaries = []
+    run = threading.Thread(target=lambda: summaries.append(
+        run_sequence(sequence, load_config(), tmp_path / "r", player=player, keep_alive=True)), daemon=True)
+    run.start()
+    assert wait_until(lambda: player.finished)
+    time.sleep(0.1)
+    assert run.is_alive()  # the sequence ended, the view stays up
+    player.request_restart()
+    assert wait_until(lambda: len(scripted[0]) == 2 and len(scripted[0][1].seen) == FRAMES)
+    player.stop()
+    run.join(timeout=5.0)
+    assert not run.is_alive() and summaries[0].status == "completed"
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["processed_frames"] == FRAMES
 
 
 # ------------------------------------------------------------------------------------------ bad input
