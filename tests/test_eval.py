@@ -249,6 +249,8 @@ def test_evaluate_gives_json_with_what_metrics_json_reports():
     assert 0.015 < result["ate"]["rmse"] < 0.06  # noise of 0.02 m per axis: ~0.035 m
     assert set(result["rpe"]) >= {"translation", "rotation_deg", "pairs"}
     assert "drift" not in result  # ground truth over the whole run: no segments unless asked for
+    lost_a_while = noisy_estimate(truth, SIMILARITY).subset(np.r_[0:50, 120:170])
+    assert "drift" not in evaluate(lost_a_while, truth)  # a gap in the estimate is not a TUM monoVO segment
     segments_asked = evaluate(noisy_estimate(truth, SIMILARITY), truth, config=EvalConfig(drift_segment_fraction=0.3))
     assert segments_asked["drift"]["scale_drift"] == pytest.approx(1.0, abs=0.1)
     matched_estimate, matched_truth = associate(noisy_estimate(truth, SIMILARITY), truth)

@@ -156,17 +156,21 @@ def tum_mono_drift(
     )
 
 
-def drift_segments(matched_truth_timestamps: np.ndarray, config: EvalConfig) -> tuple[np.ndarray, np.ndarray] | None:
-    """Index arrays of the start and end segments among matched poses: before and after the one long gap of a
-    ground truth that covers only both ends (TUM monoVO), else the first and last ``drift_segment_fraction``
-    of them; None when neither applies."""
-    spacing = np.diff(matched_truth_timestamps)
-    n = len(matched_truth_timestamps)
+def drift_segments(
+    truth_timestamps: np.ndarray, matched_timestamps: np.ndarray, config: EvalConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Index arrays of the start and end segments among the matched poses (``matched_timestamps``, those of the
+    ground truth): before and after the longest gap of a ground truth that covers only both ends (TUM monoVO),
+    else the first and last ``drift_segment_fraction`` of them; None when neither applies. The gap is looked
+    for in the ground truth itself: a gap in the estimate (lost tracking, dropped frames) is not a segment."""
+    spacing = np.diff(truth_timestamps)
     if len(spacing) and spacing.max() > config.drift_gap_factor * np.median(spacing):
-        split = int(np.argmax(spacing)) + 1
-        return np.arange(split), np.arange(split, n)
+        gap_end = truth_timestamps[int(np.argmax(spacing)) + 1]
+        after = matched_timestamps >= gap_end
+        return np.flatnonzero(~after), np.flatnonzero(after)
     if config.drift_segment_fraction is None:
         return None
+    n = len(matched_timestamps)
     size = int(round(config.drift_segment_fraction * n))
     return np.arange(min(size, n)), np.arange(max(n - size, 0), n)
 
@@ -269,7 +273,7 @@ def evaluate(
         "ate": error_statistics(ate_errors(aligned, matched_truth)),
         "rpe": _rpe_summary(aligned, matched_truth, first, second, config),
     }
-    drift = _drift(estimate, matched_estimate, matched_truth, config)
+    drift = _drift(estimate, ground_truth, matched_estimate, matched_truth, config)
     if drift is not None:
         result["drift"] = drift.as_dict()
     return result
@@ -284,8 +288,8 @@ def _rpe_summary(aligned, matched_truth, first, second, config: EvalConfig) -> d
     return summary
 
 
-def _drift(estimate, matched_estimate, matched_truth, config: EvalConfig) -> Drift | None:
-    segments = drift_segments(matched_truth.timestamps, config)
+def _drift(estimate, ground_truth, matched_estimate, matched_truth, config: EvalConfig) -> Drift | None:
+    segments = drift_segments(ground_truth.timestamps, matched_truth.timestamps, config)
     if segments is None or min(len(segment) for segment in segments) < config.drift_min_segment_poses:
         return None
     start, end = segments
