@@ -34,8 +34,8 @@ from vo_core.trajectory import Trajectory
 
 BAD_IMAGE_POLICIES = ("skip", "abort")
 
-# Layouts without timestamps (VAMR, plain image folders) get frame index x this (issue 2, CLI contract).
-NOMINAL_FRAME_INTERVAL_S = 0.1
+# Layouts without timestamps (VAMR, plain image folders) get frame index x 0.1 s (issue 2, CLI contract).
+NOMINAL_FRAME_RATE_HZ = 10.0
 
 
 @dataclass
@@ -102,6 +102,11 @@ def to_gray_u8(image: np.ndarray | None) -> np.ndarray | None:
     if image.dtype == np.uint16:
         image = (image >> 8).astype(np.uint8)
     return image if image.dtype == np.uint8 else None
+
+
+def nominal_timestamps(count: int) -> np.ndarray:
+    """index x 0.1 s, computed as index / 10: the double nearest to each value (19.9, not 19.900000000000002)."""
+    return np.arange(count) / NOMINAL_FRAME_RATE_HZ
 
 
 def natural_sort_key(name: str) -> list:

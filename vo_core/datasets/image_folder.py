@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from vo_core.datasets.base import (
-    NOMINAL_FRAME_INTERVAL_S,
     ImageFiles,
     LoadOptions,
     Sequence,
     check_ground_truth_overlap,
     natural_sort_key,
+    nominal_timestamps,
 )
 from vo_core.datasets.calibration import find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, read_table
@@ -70,7 +70,7 @@ def _camera_file(folder: Path, options: LoadOptions) -> Path:
 
 def _timestamps(times_file: Path, count: int) -> np.ndarray:
     if not times_file.is_file():
-        return np.arange(count) * NOMINAL_FRAME_INTERVAL_S
+        return nominal_timestamps(count)
     timestamps = read_table(times_file, 1)[:, 0]
     if len(timestamps) != count:
         raise InputError(f"{times_file}: {len(timestamps)} timestamps for {count} images")

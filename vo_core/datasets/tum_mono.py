@@ -2,8 +2,9 @@
 Odometry", 2016): images/ or images.zip, times.txt, camera.txt, pcalib.txt, vignette.png, groundtruthSync.txt.
 
 times.txt has 'id timestamp exposure_ms' per frame. camera.txt is DSO's format (FOV model, relative intrinsics,
-usually "crop" to 640x480). The photometric calibration (inverse response, vignette) is used where present. groundtruthSync.txt (TUM format, one line per frame) has poses only for the start and end segments
-seen by the motion capture; the other lines are NaN and are dropped.
+usually "crop" to 640x480). The photometric calibration (inverse response, vignette) is used where present.
+groundtruthSync.txt (TUM format, one line per frame) has poses only for the start and end segments seen by the
+motion capture; the other lines are NaN and are dropped.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 K.txt is a 3x3 matrix (comma or space separated); the images are rendered pinhole images without distortion.
 poses.txt, where present, has one row-major 3x4 camera-to-world matrix per frame. The dataset has no
-timestamps: frame i is at i x 0.1 s (NOMINAL_FRAME_INTERVAL_S), as in every output of the project.
+timestamps: frame i is at i x 0.1 s (``nominal_timestamps``), as in every output of the project.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import NOMINAL_FRAME_INTERVAL_S, ImageFiles, LoadOptions, Sequence, image_size
+from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, image_size, nominal_timestamps
 from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import read_matrix, require_file
 from vo_core.errors import InputError
@@ -33,7 +33,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     if not np.array_equal(frame_numbers, np.arange(len(image_paths))):
         gap = int(np.argmax(frame_numbers != np.arange(len(image_paths))))
         raise InputError(f"{path / 'images'}: images are not numbered 0..{len(image_paths) - 1}: frame {gap} missing")
-    timestamps = np.arange(len(image_paths)) * NOMINAL_FRAME_INTERVAL_S
+    timestamps = nominal_timestamps(len(image_paths))
     if options.camera_file is not None:
         calibration = load_camera_file(options.camera_file)
     else:
