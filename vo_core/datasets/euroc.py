@@ -22,7 +22,7 @@ from vo_core.trajectory import Trajectory, read_trajectory
 NAME = "euroc"
 LOOKS_FOR = "mav0/cam0/data.csv (EuRoC/ASL)"
 CAMERA = "cam0"  # the left camera, as DSO and ORB-SLAM2 use for monocular EuRoC
-NANOSECONDS = 1e-9
+NANOSECONDS_PER_SECOND = 1_000_000_000
 _DISTORTION_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant"}
 
 
@@ -71,7 +71,9 @@ def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
         paths.append(list_file.parent / "data" / fields[1])
     if not paths:
         raise InputError(f"{list_file}: lists no images")
-    timestamps = np.array(timestamps_ns, dtype=np.int64) * NANOSECONDS
+    # whole seconds and the rest apart: a 19-digit nanosecond count as one double would lose ~256 ns
+    whole_seconds, nanoseconds = np.divmod(np.array(timestamps_ns, dtype=np.int64), NANOSECONDS_PER_SECOND)
+    timestamps = whole_seconds + nanoseconds / NANOSECONDS_PER_SECOND
     check_increasing(timestamps, list_file)
     check_files_exist(paths, list_file)
     return timestamps, paths

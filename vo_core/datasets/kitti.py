@@ -65,9 +65,9 @@ def load(path: Path, options: LoadOptions) -> Sequence:
 
 
 def _frame_numbers(image_paths: list[Path]) -> np.ndarray:
-    if not all(p.stem.isdigit() for p in image_paths):
-        bad = next(p for p in image_paths if not p.stem.isdigit())
-        raise InputError(f"{bad}: KITTI image names are frame numbers (000000.png)")
+    misnamed = [p for p in image_paths if not p.stem.isdigit()]
+    if misnamed:
+        raise InputError(f"{misnamed[0]}: KITTI image names are frame numbers (000000.png)")
     return np.array([int(p.stem) for p in image_paths])
 
 
