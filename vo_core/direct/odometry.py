@@ -298,7 +298,7 @@ class DirectOdometry:
         details = {
             "reason": "no motion hypothesis converged",
             "reference_keyframe": self.newest_keyframe.frame_index,
-            "rmse_before": prior_rmse,
+            "rmse_before": prior_rmse if np.isfinite(prior_rmse) else None,
         }
         result.events.append(_event(EventKind.TRACKING_FAILED, frame, details))
         self.T_world_origin = self.history[-1].T_world_cam.copy()
@@ -355,6 +355,8 @@ class DirectOdometry:
                     "removed_points": removed,
                     "reference_points": self.tracker.num_points,
                     "immature_points": len(keyframe.immature),
+                    "rmse_before": result.rmse_before,
+                    "rmse_after": result.rmse_after,
                 },
             )
         )
