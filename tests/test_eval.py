@@ -15,6 +15,7 @@ from vo_core.eval import (
     evaluate,
     fit_alignment,
     frame_drop_error,
+    frame_drop_error_at,
     rpe_pairs,
     tum_mono_drift,
 )
@@ -226,6 +227,17 @@ def test_frame_drop_error_in_percent_after_the_alignment_scale():
     error = frame_drop_error(estimate_before, estimate_after, truth_before, truth_after, scale=2.0)
     assert error.translation == pytest.approx(0.9) and error.translation_percent == pytest.approx(10.0)
     assert error.true_rotation_deg == pytest.approx(20.0) and error.rotation_percent == pytest.approx(10.0)
+
+
+def test_frame_drop_error_looks_up_the_poses_by_time():
+    truth = smooth_ground_truth()
+    estimate = seen_through(truth, SIMILARITY)
+    before, after = truth.timestamps[100], truth.timestamps[160]
+    error = frame_drop_error_at(estimate, truth, before, after + 0.001, scale=1 / 0.37)
+    assert error.translation_percent == pytest.approx(0.0, abs=1e-9) and error.rotation_percent < 1e-6
+    assert error.true_translation == pytest.approx(np.linalg.norm(truth.positions[160] - truth.positions[100]))
+    with pytest.raises(InputError, match="no pose within 0.02 s"):
+        frame_drop_error_at(estimate, truth, before, truth.timestamps[-1] + 1.0)
 
 
 def test_quaternion_angle_is_the_geodesic_angle():

@@ -14,8 +14,8 @@ Three file formats are read and written (``FORMATS``):
 
 Quaternions are normalized and rotation matrices projected onto SO(3) when read: files written with few
 decimals still give exact rotations. A TUM or EuRoC line whose pose is all NaN (TUM monoVO's groundtruthSync.txt
-marks frames without ground truth so) is no pose and is skipped. Malformed lines, non-finite values and timestamps that do not increase
-raise ``InputError`` naming the file and line.
+marks frames without ground truth so) is no pose and is skipped. Malformed lines, non-finite values and
+timestamps that do not increase raise ``InputError`` naming the file and line.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def detect_format(path: Path) -> str:
         return "tum"
     if len(fields) > _FIELDS_PER_LINE["euroc"] and _looks_like_nanoseconds(fields[0]):
         return "euroc"
-    raise InputError(f"{path}: cannot tell the trajectory format ({len(fields)} numbers a line); name it")
+    raise InputError(f"{path}: cannot tell the trajectory format ({len(fields)} numbers a line; TUM has 8, KITTI 12)")
 
 
 def _checked_format(format: str) -> str:

@@ -62,7 +62,9 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> tuple[n
     return R, t, s
 
 
-def fit_alignment(estimate: Trajectory, ground_truth: Trajectory, method: str = "sim3", first_n: int | None = None) -> Alignment:
+def fit_alignment(
+    estimate: Trajectory, ground_truth: Trajectory, method: str = "sim3", first_n: int | None = None
+) -> Alignment:
     """The ``method`` ("sim3", "se3" or "none") alignment of matched trajectories (pose k with pose k), fitted
     on all poses or, with ``first_n``, on the first n only (the rest then shows how the estimate drifts away)."""
     if method not in ALIGNMENTS:

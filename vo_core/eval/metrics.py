@@ -1,10 +1,10 @@
 """Trajectory error metrics, each with the equation it implements.
 
 - ATE, the absolute trajectory error (Sturm et al. 2012, "A Benchmark for the Evaluation of RGB-D SLAM Systems",
-  eq. 7-8; Zhang & Scaramuzza 2018, "A Tutorial on Quantitative Trajectory Evaluation", sec. IV-A).
-- RPE, the relative pose error over a delta in frames or metres (Sturm et al. 2012, eq. 1-3).
+  sec. "Evaluation metrics"; Zhang & Scaramuzza 2018, "A Tutorial on Quantitative Trajectory Evaluation").
+- RPE, the relative pose error over a delta in frames or metres (Sturm et al. 2012, the same section).
 - The drifts of the TUM monoVO benchmark (Engel, Usenko & Cremers 2016, "A Photometrically Calibrated
-  Benchmark For Monocular Visual Odometry", sec. 4, eq. 6-8).
+  Benchmark For Monocular Visual Odometry", sec. "Evaluation Metrics").
 - The frame-drop error of FDMO (Younes, Asmar & Zelek 2019, sec. 5.3.2).
 
 ``evaluate`` combines them into the JSON-ready dictionary that ``metrics.json`` and ``fdmo eval`` show.
@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from vo_core.errors import InputError
 from vo_core.eval.align import Alignment, fit_alignment
-from vo_core.eval.associate import DEFAULT_MAX_DT_S, associate
+from vo_core.eval.associate import DEFAULT_MAX_DT_S, associate, associate_timestamps
 from vo_core.geometry.lie import sim3_inverse, sim3_scale
 from vo_core.trajectory import Trajectory
 
@@ -31,11 +31,11 @@ RPE_UNITS = ("frames", "m")
 class EvalConfig:
     """What ``evaluate`` computes beyond the alignment."""
 
-    # RPE over consecutive matched poses (Sturm et al. 2012, sec. VII-A: delta = 1 frame measures the drift per
-    # frame; a delta in metres compares sequences recorded at different rates).
+    # RPE over consecutive matched poses (Sturm et al. 2012: delta = 1 frame measures the drift per frame; a delta
+    # in metres compares sequences recorded at different rates).
     rpe_delta: float = 1
     rpe_unit: str = "frames"
-    # TUM monoVO drifts (Engel et al. 2016, sec. 4) need ground truth over a start and an end segment. Ground
+    # TUM monoVO drifts (Engel et al. 2016) need ground truth over a start and an end segment. Ground
     # truth that only covers both ends (a gap between its poses this many times longer than their median
     # spacing, as in TUM monoVO) gives the segments itself. Over ground truth that covers the whole run, the
     # segments are this share of the matched poses each, if set; unset, no drifts are reported there, since
@@ -51,7 +51,7 @@ class EvalConfig:
 
 
 def error_statistics(errors: np.ndarray) -> dict[str, float]:
-    """rmse, mean, median, std, min and max of a set of errors (Zhang & Scaramuzza 2018, eq. 23)."""
+    """rmse, mean, median, std, min and max of a set of errors, the statistics evo and the TUM tools print."""
     errors = np.asarray(errors, dtype=float)
     return {
         "rmse": float(np.sqrt(np.mean(errors**2))),
@@ -72,8 +72,9 @@ def rotation_angles(rotations: np.ndarray) -> np.ndarray:
 
 
 def ate_errors(aligned_estimate: Trajectory, ground_truth: Trajectory) -> np.ndarray:
-    """(N,) translational ATE of matched poses already aligned: ||trans(Q_i^-1 S P_i)|| = ||q_i - (s R p_i + t)||
-    (Sturm et al. 2012, eq. 7; its RMSE, eq. 8, is the ATE the TUM benchmark reports)."""
+    """(N,) translational ATE of matched poses already aligned: ||trans(F_i)|| with F_i = Q_i^-1 S P_i, i.e.
+    ||q_i - (s R p_i + t)|| (Sturm et al. 2012); ATE_rmse = sqrt(1/n sum_i ||trans(F_i)||^2) is what the TUM
+    benchmark reports."""
     return np.linalg.norm(ground_truth.positions - aligned_estimate.positions, axis=1)
 
 
@@ -102,7 +103,7 @@ def rpe_pairs(ground_truth: Trajectory, delta: float, unit: str) -> tuple[np.nda
 def rpe_errors(
     aligned_estimate: Trajectory, ground_truth: Trajectory, first: np.ndarray, second: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(translation m, rotation rad) of E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) (Sturm et al. 2012, eq. 1) for each
+    """(translation m, rotation rad) of E_ij = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j) (Sturm et al. 2012) for each
     pair. The estimate must already carry the alignment's scale; its rotation and translation do not matter."""
     estimated_motion = np.linalg.inv(aligned_estimate.poses[first]) @ aligned_estimate.poses[second]
     true_motion = np.linalg.inv(ground_truth.poses[first]) @ ground_truth.poses[second]
@@ -115,9 +116,9 @@ def rpe_errors(
 
 @dataclass(frozen=True)
 class Drift:
-    """The drifts of Engel et al. 2016, sec. 4, from the start and end alignments S_s and S_e (eq. 6-7)."""
+    """The drifts of Engel et al. 2016 from the alignments S_s and S_e of the start and end segments."""
 
-    alignment_error: float  # e_align (m), eq. 8
+    alignment_error: float  # e_align (m)
     rotation_drift_deg: float  # e_r: the angle of T_drift = S_e S_s^-1
     scale_drift: float  # e_s: the scale of T_drift (1 = none; e_s and 1/e_s are the same amount)
     translation_drift: float  # e_t: ||translation(T_drift)|| (m)
@@ -138,9 +139,9 @@ def tum_mono_drift(
 ) -> Drift:
     """Drifts of a whole ``estimate`` from its matched (estimate, ground truth) ``start`` and ``end`` segments.
 
-    S_s = argmin_S sum_{i in start} ||S p_i - p^_i||^2 and S_e likewise over the end (eq. 6-7, Sim(3)); the
+    S_s = argmin_S sum_{i in start} ||S p_i - p^_i||^2 and S_e likewise over the end (Sim(3)); the
     accumulated drift is T_drift = S_e S_s^-1, and e_align = sqrt(1/n sum_{i=1..n} ||S_s p_i - S_e p_i||^2)
-    over all n estimated positions (eq. 8): how far apart the two alignments put the trajectory, which weighs
+    over all n estimated positions: how far apart the two alignments put the trajectory, which weighs
     scale, rotation and translation drift together."""
     S_start, S_end = fit_alignment(*start, method="sim3"), fit_alignment(*end, method="sim3")
     T_drift = S_end.transform @ sim3_inverse(S_start.transform)
@@ -227,6 +228,27 @@ def frame_drop_error(
         rotation_deg=_quaternion_angle_deg(estimate_before[:3, :3], estimate_after[:3, :3]),
         true_rotation_deg=_quaternion_angle_deg(truth_before[:3, :3], truth_after[:3, :3]),
     )
+
+
+def frame_drop_error_at(
+    estimate: Trajectory,
+    ground_truth: Trajectory,
+    before_s: float,
+    after_s: float,
+    scale: float = 1.0,
+    max_dt: float = DEFAULT_MAX_DT_S,
+) -> FrameDropError:
+    """``frame_drop_error`` of the frames at ``before_s`` and ``after_s`` (the last frame before a drop and the
+    first after it), each pose the one of its trajectory nearest in time within ``max_dt``."""
+    poses = [_pose_at(trajectory, time, max_dt) for trajectory in (estimate, ground_truth) for time in (before_s, after_s)]
+    return frame_drop_error(*poses, scale=scale)
+
+
+def _pose_at(trajectory: Trajectory, time_s: float, max_dt: float) -> np.ndarray:
+    match = associate_timestamps(np.array([time_s]), trajectory.timestamps, max_dt)
+    if len(match) == 0:
+        raise InputError(f"no pose within {max_dt} s of {time_s:.6f} s")
+    return trajectory.poses[match.second[0]]
 
 
 def _quaternion_angle_deg(R_i: np.ndarray, R_j: np.ndarray) -> float:
