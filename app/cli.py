@@ -12,10 +12,13 @@ The viewers are imported only when asked for, so the CLI works without them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence as SequenceOf
+from collections.abc import Iterator, Sequence as SequenceOf
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -114,8 +117,9 @@ def command_run(args: argparse.Namespace) -> int:
     if args.viser:
         sinks.append(_viser_view(sequence, player, args.port))
     try:
-        summary = run_sequence(sequence, config, out_dir, sinks, player=player,
-                               show_progress=not args.quiet, keep_alive=args.viser)
+        with _sigterm_as_interrupt():
+            summary = run_sequence(sequence, config, out_dir, sinks, player=player,
+                                   show_progress=not args.quiet, keep_alive=args.viser)
     except KeyboardInterrupt:
         # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
         print(f"\nfdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
@@ -126,6 +130,23 @@ def command_run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(_summary_text(summary.metrics, out_dir))
     return EXIT_OK
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a timeout, a job scheduler) ends a run like Ctrl-C does, so the result files get finished."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _default_out_dir(sequence_name: str) -> Path:
@@ -169,7 +190,7 @@ def _viser_view(sequence, player, port: int):
             raise
         raise InputError("--viser: the viser view is not available in this version") from None
     view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, port=port)
-    print(f"fdmo: live view at http://127.0.0.1:{port} (Ctrl-C to quit)", file=sys.stderr)
+    print(f"fdmo: live view at {view.url} (Ctrl-C to quit)", file=sys.stderr)
     return view
 
 
