@@ -6,7 +6,7 @@
     fdmo info SOURCE [--json]
 
 Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted.
-The viewers are imported only when asked for, so the CLI works without them.
+The viewers are imported only when asked for, so a headless run never loads viser.
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def command_run(args: argparse.Namespace) -> int:
     player = Player(sequence, args.drops)
     sinks = []  # run_sequence closes them
     if not args.no_rrd:
-        sinks += _rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence, explicit=args.rrd is not None)
+        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence))
     if args.viser:
         sinks.append(_viser_view(sequence, player, args.port))
     try:
@@ -154,7 +154,7 @@ def _default_out_dir(sequence_name: str) -> Path:
 
 
 def _link_latest(out_dir: Path) -> None:
-    """results/latest points at the newest default results folder (as kiss-icp does)."""
+    """results/latest points at the newest default results folder."""
     latest = out_dir.parent / "latest"
     if latest.is_symlink() or not latest.exists():
         latest.unlink(missing_ok=True)
@@ -169,26 +169,16 @@ def _source(source: str | None) -> Path:
     return Path(DEFAULT_SEQUENCE)
 
 
-def _rerun_sink(path: Path, sequence, explicit: bool) -> list:
-    try:
-        from app.sinks.rerun_sink import RerunSink
-    except ModuleNotFoundError as missing:
-        if missing.name != "app.sinks.rerun_sink":
-            raise
-        if explicit:
-            raise InputError("--rrd: the Rerun sink is not available in this version") from None
-        return []  # the default recording is a convenience: run without it
+def _rerun_sink(path: Path, sequence):
+    from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    return [RerunSink(str(path), sequence.camera, ground_truth=sequence.ground_truth)]
+    return RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth, recording_name=sequence.name)
 
 
 def _viser_view(sequence, player, port: int):
-    try:
-        from app.sinks.viser_view import ViserView
-    except ModuleNotFoundError as missing:
-        if missing.name != "app.sinks.viser_view":
-            raise
-        raise InputError("--viser: the viser view is not available in this version") from None
+    from app.sinks.viser_view import ViserView  # imported here: a headless run never loads viser
+
     view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, port=port)
     print(f"fdmo: live view at {view.url} (Ctrl-C to quit)", file=sys.stderr)
     return view

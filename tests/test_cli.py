@@ -130,6 +130,13 @@ def test_run_writes_the_five_files_and_they_parse_back(dataset, tmp_path, script
     assert (config.method, config.seed) == ("klt", 3)
 
 
+def test_a_rerun_recording_is_written_by_default_or_where_asked(dataset, tmp_path, scripted, capsys):
+    assert run_cli(capsys, "run", dataset, "--out", tmp_path / "a", "--quiet", "--end", "4")[0] == 0
+    assert (tmp_path / "a" / "recording.rrd").stat().st_size > 0
+    assert run_cli(capsys, "run", dataset, "--out", tmp_path / "b", "--quiet", "--end", "4", "--rrd", tmp_path / "x.rrd")[0] == 0
+    assert (tmp_path / "x.rrd").stat().st_size > 0 and not (tmp_path / "b" / "recording.rrd").exists()
+
+
 def test_dropped_frames_never_reach_the_odometry_and_an_event_says_so(dataset, tmp_path, scripted, capsys):
     out = tmp_path / "results"
     code, _, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--drop", "5:3", "--drop", "10:1")
