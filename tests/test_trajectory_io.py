@@ -9,7 +9,7 @@ import pytest
 
 from vo_core.errors import InputError
 from vo_core.geometry.lie import se3_exp
-from vo_core.trajectory import Trajectory, detect_format, read_trajectory, write_trajectory
+from vo_core.trajectory import Trajectory, detect_format, read_trajectory, tum_line, write_trajectory
 
 # Written with %.9f: positions and rotation entries come back to ~1e-9.
 FILE_PRECISION = 2e-9
@@ -40,7 +40,9 @@ def test_tum_round_trip_keeps_nanosecond_timestamps(tmp_path):
     write_trajectory(tmp_path / "est.tum", trajectory, "tum")
     # Epoch seconds need 19 significant digits for nanoseconds; %.9f keeps them (float64 holds ~0.2 us).
     assert_same(read_trajectory(tmp_path / "est.tum"), trajectory, timestamp_tolerance=3e-7)
-    first_stamp = (tmp_path / "est.tum").read_text().splitlines()[1].split()[0]
+    first_line = (tmp_path / "est.tum").read_text().splitlines()[1]
+    assert first_line == tum_line(trajectory.timestamps[0], trajectory.poses[0])  # for writers of a pose at a time
+    first_stamp = first_line.split()[0]
     assert first_stamp.startswith("1403715274.") and len(first_stamp.split(".")[1]) == 9
 
 

@@ -290,22 +290,40 @@ def write_trajectory(path: str | Path, trajectory: Trajectory, format: str) -> N
 
     KITTI files keep only the poses: pass the timestamps to ``read_trajectory`` (or put a times.txt beside the
     file) to get them back. Quaternions are written with a non-negative w: q and -q are the same rotation."""
-    path = Path(path)
-    format = _checked_format(format)
-    poses = trajectory.poses
-    if format == "kitti":
-        lines = [" ".join(NUMBER_FORMAT % value for value in pose[:3, :].ravel()) for pose in poses]
-        path.write_text("".join(line + "\n" for line in lines))
-        return
+    writers = {"tum": _tum_text, "kitti": _kitti_text, "euroc": _euroc_text}
+    Path(path).write_text(writers[_checked_format(format)](trajectory))
+
+
+def tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
+    """One ``timestamp tx ty tz qx qy qz qw`` line (no newline), as ``write_trajectory`` writes it: for writers
+    that add a pose at a time."""
+    return _tum_rows(np.array([timestamp]), T_world_cam[None])[0]
+
+
+def _tum_rows(timestamps: np.ndarray, poses: np.ndarray) -> list[str]:
     quaternions_xyzw = Rotation.from_matrix(poses[:, :3, :3]).as_quat(canonical=True)
-    if format == "tum":
-        table = np.column_stack([trajectory.timestamps, poses[:, :3, 3], quaternions_xyzw])
-        np.savetxt(path, table, fmt=NUMBER_FORMAT, header="timestamp tx ty tz qx qy qz qw")
-        return
-    nanoseconds = _nanoseconds(trajectory.timestamps)
-    table = np.column_stack([poses[:, :3, 3], quaternions_xyzw[:, [3, 0, 1, 2]]])
-    lines = [f"{ns}," + ",".join(NUMBER_FORMAT % value for value in row) for ns, row in zip(nanoseconds, table)]
-    path.write_text(_EUROC_HEADER + "\n" + "".join(line + "\n" for line in lines))
+    return _format_rows(np.column_stack([timestamps, poses[:, :3, 3], quaternions_xyzw]), " ")
+
+
+def _format_rows(table: np.ndarray, separator: str) -> list[str]:
+    return [separator.join(NUMBER_FORMAT % value for value in row) for row in table]
+
+
+def _tum_text(trajectory: Trajectory) -> str:
+    lines = _tum_rows(trajectory.timestamps, trajectory.poses)
+    return "# timestamp tx ty tz qx qy qz qw\n" + "".join(line + "\n" for line in lines)
+
+
+def _kitti_text(trajectory: Trajectory) -> str:
+    lines = _format_rows(trajectory.poses[:, :3, :].reshape(-1, 12), " ")
+    return "".join(line + "\n" for line in lines)
+
+
+def _euroc_text(trajectory: Trajectory) -> str:
+    quaternions_wxyz = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat(canonical=True)[:, [3, 0, 1, 2]]
+    rows = _format_rows(np.column_stack([trajectory.positions, quaternions_wxyz]), ",")
+    lines = [f"{ns},{row}" for ns, row in zip(_nanoseconds(trajectory.timestamps), rows)]
+    return _EUROC_HEADER + "\n" + "".join(line + "\n" for line in lines)
 
 
 def _nanoseconds(timestamps: np.ndarray) -> list[int]:

@@ -240,7 +240,8 @@ def frame_drop_error_at(
 ) -> FrameDropError:
     """``frame_drop_error`` of the frames at ``before_s`` and ``after_s`` (the last frame before a drop and the
     first after it), each pose the one of its trajectory nearest in time within ``max_dt``."""
-    poses = [_pose_at(trajectory, time, max_dt) for trajectory in (estimate, ground_truth) for time in (before_s, after_s)]
+    times = (before_s, after_s)
+    poses = [_pose_at(trajectory, time, max_dt) for trajectory in (estimate, ground_truth) for time in times]
     return frame_drop_error(*poses, scale=scale)
 
 
