@@ -3,9 +3,11 @@
 Per frame (FullSystem::addActiveFrame): build the pyramid; while not initialized, feed the initializer;
 afterwards track the frame against the newest keyframe trying DSO's motion hypotheses, trace the immature
 points of the keyframes in the window, and decide whether the frame becomes a keyframe. A new keyframe
-activates converged immature points of the window (their traced inverse depth is used as is: the window
-optimization of part 2 will refine it), selects its own immature points, and becomes the tracking
-reference with all active points of the window projected into it (DSO's coarse depth map).
+slides the window (DSO's marginalization choice; leaving keyframes take their points along), activates
+converged immature points where the window lacks points (a few Gauss-Newton steps on their inverse depth
+against the window's keyframes, optimizeImmaturePoint; the window optimization of part 2 will refine them
+further), selects its own immature points, and becomes the tracking reference with all active points of the
+window projected into it (DSO's coarse depth map).
 
 When no motion hypothesis tracks, the frame is reported as failed and the system reinitializes from that
 frame on, keeping the world frame: the new first keyframe takes the last good pose.
@@ -111,7 +113,7 @@ class DirectOdometry:
                 f"config key 'direct.initializer': {config.initializer!r} is not one of {', '.join(INITIALIZERS)}"
             )
         self.config = config
-        self.init_config = init_config
+        self.init_config = init_config  # the feature-based initializer's settings, once it can be chosen here
         self.camera = camera
         self.seed = seed
         self.selector = PixelSelector(config.selector, seed)
@@ -126,6 +128,7 @@ class DirectOdometry:
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
         self.last_tracking: TrackingResult | None = None
         self.initializer_frames = 0
+        self._first_frame = None  # (frame, pyramid) the initializer started from
         self.min_activation_distance = INITIAL_ACTIVATION_DISTANCE
 
     @property
@@ -209,6 +212,12 @@ class DirectOdometry:
         first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
         self.keyframes = [first]
         self.keyframe_poses[first.frame_index] = first.T_world_cam
+        result.events.append(
+            Event(
+                EventKind.KEYFRAME_ADDED, first.frame_index, float(first.timestamp),
+                {"keyframe": first.frame_index, "window": [first.frame_index], "active_points": len(first.active_idepth)},
+            )
+        )
         T_world_cam = first.T_world_cam @ outcome.T_first_second
         self.history = [_Tracked(first.T_world_cam, np.zeros(2)), _Tracked(T_world_cam, np.zeros(2))]
         self.state = _State.TRACKING

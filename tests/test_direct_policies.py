@@ -1,0 +1,49 @@
+"""Keyframe decision, keyframe marginalization choice and motion hypotheses (DSO's rules)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from test_direct_support import pose
+from vo_core.direct.config import KeyframeConfig
+from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
+from vo_core.direct.motion_model import motion_hypotheses
+from vo_core.geometry.lie import se3_inverse
+
+CONFIG = KeyframeConfig()
+
+
+def test_keyframe_when_translation_flow_brightness_or_rmse_grows():
+    def decide(flow_t=0.0, flow_rt=0.0, factor=1.0, rmse=1.0):
+        return needs_keyframe(np.array([flow_t**2, 0.0, flow_rt**2]), factor, rmse, 1.0, 640, 480, CONFIG)
+
+    assert not decide()
+    # DSO at 640x480: translation-only flow above 0.04 (w + h) = 25 px, or both above 50 px.
+    assert not decide(flow_t=20.0) and decide(flow_t=30.0)
+    assert not decide(flow_rt=40.0) and decide(flow_rt=60.0)
+    assert decide(factor=np.exp(0.6))  # 2 |log a| > 1
+    assert decide(rmse=2.5)  # more than twice the first RMSE on this keyframe
+
+
+def test_marginalization_drops_keyframes_out_of_view_then_the_redundant_one():
+    ids = np.arange(8)
+    positions = np.array([[0.1 * i, 0.0, 0.0] for i in range(8)])
+    in_view = np.ones(8)
+    in_view[2] = 0.01
+    dropped = keyframes_to_marginalize(ids, positions, in_view, np.zeros(8), CONFIG)
+    assert 2 in dropped
+    assert 0 not in dropped  # the first keyframe only leaves when out of view
+    assert len(ids) - len(dropped) < CONFIG.max_frames
+    assert keyframes_to_marginalize(ids[:4], positions[:4], np.ones(4), np.zeros(4), CONFIG) == []
+
+
+def test_constant_velocity_comes_first_and_extrapolates_the_last_motion():
+    T_world_ref = pose()
+    T_world_prev2 = pose((0.0, 0.01, 0.0), (0.1, 0.0, 0.0))
+    T_world_prev1 = pose((0.0, 0.02, 0.0), (0.2, 0.0, 0.0))
+    hypotheses = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02)
+    expected_world_frame = T_world_prev1 @ se3_inverse(T_world_prev2) @ T_world_prev1
+    np.testing.assert_allclose(hypotheses[0], se3_inverse(expected_world_frame) @ T_world_ref, atol=1e-12)
+    assert len(hypotheses) == 5 + 26  # DSO: 5 motion guesses and 26 rotated constant-velocity guesses
+    np.testing.assert_allclose(hypotheses[4], np.eye(4))  # zero motion from the keyframe
+    assert all(np.allclose(h[:3, :3].T @ h[:3, :3], np.eye(3)) for h in hypotheses)
