@@ -12,7 +12,7 @@ the ray K^-1 p.) Rendering is deferred, in two passes:
 
 1. geometry: for each plane, over the bounding box of its projection, a few affine images (row and column terms
    broadcast) and two divisions give inverse depth and texel coordinates; a z-buffer on inverse depth keeps the
-   nearest surface's texel coordinates and mip level at each pixel;
+   nearest surface's index and texel coordinates at each pixel;
 2. shading: every texture and its mip levels sit in one atlas, so two cv2.remap calls over the whole image
    (bilinear, in the two mip levels around each pixel's level, blended: trilinear filtering) shade all planes.
 
@@ -62,12 +62,11 @@ class _GBuffer:
     plane: np.ndarray  # int32 plane index, NO_SURFACE where nothing was hit
     texel_x: np.ndarray  # float32 level-0 texel coordinates in that plane's texture
     texel_y: np.ndarray
-    level: np.ndarray  # float32 mip level (log2 texels per pixel, not yet clipped)
 
     @classmethod
     def empty(cls, height: int, width: int) -> "_GBuffer":
         zeros = np.zeros((height, width), np.float32)
-        return cls(zeros, np.full((height, width), NO_SURFACE, np.int32), zeros.copy(), zeros.copy(), zeros.copy())
+        return cls(zeros, np.full((height, width), NO_SURFACE, np.int32), zeros.copy(), zeros.copy())
 
 
 class Renderer:
@@ -89,42 +88,46 @@ class Renderer:
         """The view from ``T_world_cam``; intensities become gain * I + offset (an affine brightness change)."""
         gbuffer = _GBuffer.empty(self.camera.height, self.camera.width)
         T_cam_world = se3_inverse(T_world_cam)
+        # The pose-dependent part of each plane's mip level; the entry after the last is for NO_SURFACE.
+        level_offsets = np.zeros(len(self.scene.planes) + 1, np.float32)
         for index, plane in enumerate(self.scene.planes):
-            self._rasterize(index, plane, T_cam_world, gbuffer)
-        radiance = self._atlas.sample(gbuffer.plane, gbuffer.texel_x, gbuffer.texel_y, gbuffer.level)
+            level_offsets[index] = self._rasterize(index, plane, T_cam_world, gbuffer)
+        with np.errstate(divide="ignore"):  # log2(0) where nothing was hit: the coarsest level, never shown
+            level = self._half_log2_ray_length - np.float32(1.5) * np.log2(gbuffer.inverse_depth)
+        level += np.take(level_offsets, gbuffer.plane)
+        radiance = self._atlas.sample(gbuffer.plane, gbuffer.texel_x, gbuffer.texel_y, level)
         blurred = cv2.GaussianBlur(radiance, (0, 0), self.config.blur_sigma_px)
         image = np.clip(np.rint(gain * blurred + offset), 0, 255).astype(np.uint8)
         with np.errstate(divide="ignore"):
             depth = np.float32(1.0) / gbuffer.inverse_depth  # 1 / 0 = inf where nothing was hit
         return Rendering(image, depth)
 
-    def _rasterize(self, index: int, plane: TexturedPlane, T_cam_world: np.ndarray, gbuffer: _GBuffer) -> None:
-        """Z-buffer ``plane`` into ``gbuffer``, over the bounding box of its projection."""
+    def _rasterize(self, index: int, plane: TexturedPlane, T_cam_world: np.ndarray, gbuffer: _GBuffer) -> float:
+        """Z-buffer ``plane`` into ``gbuffer`` over the bounding box of its projection; return the plane's mip level
+        offset log2(tpm / (f sqrt|n . o|)) (0 when it cannot be seen)."""
         R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
         axis_u, axis_v, origin = R @ plane.axis_u, R @ plane.axis_v, R @ plane.origin + t
         normal_distance = np.cross(axis_u, axis_v) @ origin  # n . o < 0: the camera is on the normal's side
         if abs(normal_distance) < self.config.edge_on_distance_m or (not plane.two_sided and normal_distance > 0):
-            return
+            return 0.0
         box = self._bounding_box(transform_points(T_cam_world, plane.corners))
         if box is None:
-            return
+            return 0.0
         H = np.linalg.inv(np.column_stack([axis_u, axis_v, origin])) @ self._K_inv
         w = self._affine(H[2], box)  # inverse depth
         nearest = w > gbuffer.inverse_depth[box]  # implies w > 0: in front of the camera
         with np.errstate(divide="ignore", invalid="ignore"):  # where w <= 0 nothing is kept
             texel_x = self._affine(plane.texels_per_metre * H[0], box) / w
             texel_y = self._affine(plane.texels_per_metre * H[1], box) / w
-            level = self._half_log2_ray_length[box] - np.float32(1.5) * np.log2(w)
         for texel, extent in ((texel_x, plane.width_m), (texel_y, plane.height_m)):
             nearest &= texel >= 0
             nearest &= texel <= extent * plane.texels_per_metre
-        f = min(self.camera.fx, self.camera.fy)
-        level += np.float32(np.log2(plane.texels_per_metre / (f * np.sqrt(abs(normal_distance)))))
         for target, value in (
-            (gbuffer.inverse_depth, w), (gbuffer.texel_x, texel_x), (gbuffer.texel_y, texel_y),
-            (gbuffer.level, level), (gbuffer.plane, index),
+            (gbuffer.inverse_depth, w), (gbuffer.texel_x, texel_x), (gbuffer.texel_y, texel_y), (gbuffer.plane, index)
         ):
             np.copyto(target[box], value, where=nearest)
+        f = min(self.camera.fx, self.camera.fy)
+        return float(np.log2(plane.texels_per_metre / (f * np.sqrt(abs(normal_distance)))))
 
     def _bounding_box(self, corners_cam: np.ndarray) -> tuple[slice, slice] | None:
         """Row and column slices of the image that the rectangle (camera-frame corners) can cover, or None."""
@@ -183,10 +186,10 @@ class _TextureAtlas:
         return fine + blend * (coarse - fine)
 
     def _lookup(self, entry, level, texel_x, texel_y) -> np.ndarray:
-        scale = self._scale[level]
+        scale = np.take(self._scale, level)
         shift = np.float32(0.5) * scale - np.float32(0.5)
-        map_x = self._origin_x[entry] + texel_x * scale + shift
-        map_y = self._origin_y[entry] + texel_y * scale + shift
+        map_x = np.take(self._origin_x, entry) + texel_x * scale + shift
+        map_y = np.take(self._origin_y, entry) + texel_y * scale + shift
         return cv2.remap(self.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
