@@ -13,11 +13,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from vo_core.config import Config, dump_config
 from vo_core.events import Event, FrameResult, MapSnapshot
-from vo_core.trajectory import NUMBER_FORMAT, Trajectory, write_trajectory
+from vo_core.trajectory import Trajectory, tum_line, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -90,12 +89,6 @@ class FilesSink:
         for handle in self._files.values():
             handle.close()
         self._files = {}
-
-
-def tum_line(timestamp: float, T_world_cam: np.ndarray) -> str:
-    """One line of vo_core.trajectory's TUM files (``timestamp tx ty tz qx qy qz qw``), for writing as we go."""
-    quaternion_xyzw = Rotation.from_matrix(T_world_cam[:3, :3]).as_quat(canonical=True)
-    return " ".join(NUMBER_FORMAT % value for value in (timestamp, *T_world_cam[:3, 3], *quaternion_xyzw))
 
 
 def write_text_atomically(path: Path, text: str) -> None:
