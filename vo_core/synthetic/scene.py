@@ -11,7 +11,7 @@ pixel (0, 0) is the centre of the top-left pixel). Textures are sized so that a 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
@@ -120,6 +120,10 @@ ROOM_MIN = np.array([-4.0, -2.5, -3.0])
 ROOM_MAX = np.array([4.0, 1.5, 8.0])
 ROOM_TEXELS_PER_METRE = 80.0  # 1.25 cm texels: walls 4-8 m away (0.8-1.6 cm a pixel), the floor nearer
 OBJECT_TEXELS_PER_METRE = 150.0  # objects 2-5 m away: 0.4-1 cm a pixel
+# Shading of the room: a distant light from above, left and behind the camera, and ambient light. Constant on
+# each plane (Lambert), so views stay photometrically consistent, while surfaces meeting at an edge differ.
+LIGHT_DIRECTION = np.array([0.3, -1.0, -0.5]) / np.linalg.norm([0.3, -1.0, -0.5])  # towards the light
+AMBIENT_SHARE = 0.6
 PLANE_DEPTH_M = 2.5  # the planar scene's plane, fronto-parallel to the identity pose
 PLANE_SIZE_M = (9.0, 7.0)  # fills the view of the planar trajectory's poses with a margin
 PLANE_TEXELS_PER_METRE = 180.0  # 5 mm texels: about a pixel at 2.5 m
@@ -155,7 +159,7 @@ def room_scene(seed: int = 0) -> Scene:
         textured_plane("panel_near", (-0.1, -0.6, 2.2), x, y, (1.1, 0.8), tpm, rng),
         textured_plane("panel_tilted", (0.6, -1.3, 3.6), tilt @ x, tilt @ y, (1.3, 1.0), tpm, rng),
     ]
-    return Scene("room", tuple(planes))
+    return Scene("room", tuple(_lit(plane) for plane in planes))
 
 
 @lru_cache(maxsize=SCENE_CACHE_SIZE)
@@ -166,6 +170,16 @@ def plane_scene(seed: int = 0) -> Scene:
     x, y, _ = np.eye(3)
     plane = textured_plane("plane", (-width / 2, -height / 2, PLANE_DEPTH_M), x, y, PLANE_SIZE_M, PLANE_TEXELS_PER_METRE, rng)
     return Scene("plane", (plane,))
+
+
+def _lit(plane: TexturedPlane) -> TexturedPlane:
+    """The plane with its texture scaled by ambient + diffuse Lambertian shading (both sides of a two-sided plane
+    are lit alike: its normal's sign is arbitrary)."""
+    cosine = plane.normal @ LIGHT_DIRECTION
+    diffuse = abs(cosine) if plane.two_sided else max(cosine, 0.0)
+    texture = plane.texture * np.float32(AMBIENT_SHARE + (1.0 - AMBIENT_SHARE) * diffuse)
+    texture.setflags(write=False)
+    return replace(plane, texture=texture)
 
 
 SCENES = {"room": room_scene, "plane": plane_scene}

@@ -27,7 +27,7 @@ TILE_TEXELS = 256 * 256
 @dataclass(frozen=True)
 class TextureConfig:
     # Value-noise octaves: (period in texels, amplitude in gray levels) from stains to grain.
-    octaves: tuple[tuple[float, float], ...] = ((160.0, 45.0), (56.0, 30.0), (18.0, 22.0), (6.0, 14.0), (2.5, 8.0))
+    octaves: tuple[tuple[float, float], ...] = ((160.0, 45.0), (56.0, 30.0), (18.0, 22.0), (6.0, 16.0), (2.5, 10.0))
     blobs_per_tile: float = 10.0
     blob_radius_texels: tuple[float, float] = (3.0, 22.0)
     blob_amplitude: float = 45.0  # gray levels, either sign
@@ -37,7 +37,7 @@ class TextureConfig:
     line_length_texels: float = 60.0  # standard deviation of the stroke's extent along each axis
     line_thickness_texels: tuple[int, int] = (1, 3)
     # The 2nd..98th percentiles are stretched onto this range (room to spare for brightness changes).
-    intensity_range: tuple[float, float] = (35.0, 220.0)
+    intensity_range: tuple[float, float] = (25.0, 235.0)
     blur_sigma_texels: float = 0.8  # anti-aliases the painted edges
 
 
