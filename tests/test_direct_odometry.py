@@ -121,3 +121,18 @@ def test_wrong_image_size_is_an_input_error():
     frame = render_frame(PlaneScene(seed=0), small_camera(160, 120), 0, pose())
     with pytest.raises(InputError, match="frame 0"):
         odometry.process(frame)
+
+
+def test_tracking_from_a_given_prior_continues_the_trajectory(smooth_run):
+    poses, odometry, results = smooth_run
+    scene = PlaneScene(seed=2)
+    last = results[-1].T_world_cam
+    result = odometry.track_with_prior(render_frame(scene, CAMERA, 50, smooth_pose(50)), last)
+    assert result.tracked
+    step_estimated = np.linalg.norm(result.T_world_cam[:3, 3] - last[:3, 3])
+    step_true = np.linalg.norm(poses[49][:3, 3] - smooth_pose(50)[:3, 3])
+    scale = np.linalg.norm(results[-1].T_world_cam[:3, 3] - results[-10].T_world_cam[:3, 3]) / np.linalg.norm(
+        poses[49][:3, 3] - poses[40][:3, 3]
+    )
+    assert step_estimated == pytest.approx(step_true * scale, rel=0.3)
+    assert result.rmse_after <= result.rmse_before
