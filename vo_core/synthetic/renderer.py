@@ -16,11 +16,12 @@ the ray K^-1 p.) Rendering is deferred, in two passes:
 2. shading: every texture and its mip levels sit in one atlas, so two cv2.remap calls over the whole image
    (bilinear, in the two mip levels around each pixel's level, blended: trilinear filtering) shade all planes.
 
-The mip level is log2 of the texels a pixel covers. Along the steepest direction a pixel covers
-z |r| / (f cos(incidence)) metres (ray r = K^-1 p, cos(incidence) = |n . r| / |r|), across it about z / f: the
-level takes their geometric mean, tpm z / f sqrt(|r| / |n . r|) texels (tpm: texels per metre), which with
-n . r = w (n . o) and z = 1 / w is log2(tpm / (f sqrt|n . o|)) + log2|r| / 2 - 3/2 log2 w: sharp floors at grazing
-angles, little aliasing. A light Gaussian blur of the final image anti-aliases occlusion edges.
+The mip level is log2 of the texels a pixel covers. A pixel on the ray r = K^-1 p subtends about 1 / (f |r|)
+radians at distance z |r|: z / f metres across the ray, z / (f cos(incidence)) along the plane's steepest
+direction, cos(incidence) = |n . r| / |r|. The level takes their geometric mean, tpm z / f sqrt(|r| / |n . r|)
+texels (tpm: texels per metre), which with n . r = w (n . o) and z = 1 / w is
+log2(tpm / (f sqrt|n . o|)) + log2|r| / 2 - 3/2 log2 w: floors stay sharp at grazing angles with little aliasing.
+A light Gaussian blur of the final image anti-aliases occlusion edges.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.synthetic.scene import Scene, TexturedPlane
 
-ATLAS_WIDTH = 4096  # texels; cv2.remap needs sources under 32767 on each side
+ATLAS_WIDTH = 4096  # texels
+ATLAS_MAX_HEIGHT = 32767  # cv2.remap takes sources smaller than SHRT_MAX on each side
 ATLAS_PADDING = 1  # replicated texels around each image in the atlas: bilinear lookups at its edges stay in it
 NO_SURFACE = -1  # plane index of pixels that see nothing
 
@@ -152,8 +154,9 @@ class Renderer:
 class _TextureAtlas:
     """All textures and their mip levels packed in one float32 image, for lookups by (plane, level, texel).
 
-    Mip level l of a texture is cv2.pyrDown applied l times, so level-0 texel x is (x + 0.5) / 2^l - 0.5 at
-    level l. Images are packed on shelves (rows of images of similar height), each padded by replicated texels.
+    Mip level l of a texture is cv2.pyrDown applied l times; pyrDown keeps the even texels of the blurred image,
+    so level-0 texel x is x / 2^l at level l. Images are packed on shelves (rows of images of similar height), each
+    padded by replicated texels.
     """
 
     def __init__(self, textures: list[np.ndarray], levels: int):
@@ -161,6 +164,8 @@ class _TextureAtlas:
         images = [level for texture in textures for level in _mipmap(texture, levels)]
         padded = [cv2.copyMakeBorder(image, *[ATLAS_PADDING] * 4, cv2.BORDER_REPLICATE) for image in images]
         positions, height = _pack_shelves([image.shape for image in padded], ATLAS_WIDTH)
+        if height >= ATLAS_MAX_HEIGHT:
+            raise ValueError(f"the scene's textures need a {height}-texel high atlas, more than cv2.remap takes")
         self.image = np.zeros((height, ATLAS_WIDTH), np.float32)
         for image, (row, column) in zip(padded, positions):
             self.image[row : row + image.shape[0], column : column + image.shape[1]] = image
@@ -187,9 +192,8 @@ class _TextureAtlas:
 
     def _lookup(self, entry, level, texel_x, texel_y) -> np.ndarray:
         scale = np.take(self._scale, level)
-        shift = np.float32(0.5) * scale - np.float32(0.5)
-        map_x = np.take(self._origin_x, entry) + texel_x * scale + shift
-        map_y = np.take(self._origin_y, entry) + texel_y * scale + shift
+        map_x = np.take(self._origin_x, entry) + texel_x * scale
+        map_y = np.take(self._origin_y, entry) + texel_y * scale
         return cv2.remap(self.image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
