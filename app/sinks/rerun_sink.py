@@ -272,20 +272,30 @@ class _ScalarColumns:
 
 
 def default_blueprint() -> rrb.Blueprint:
-    """The 3D world on the left; on the right the camera image over the plots (tabs) and the event log."""
+    """The 3D world (its eye following the camera) on the left; on the right the camera image over the plots
+    (tabs) and the event log (routine DEBUG lines filtered out, one click brings them back). A recording
+    opens at its last frame, the whole run in view; press play or scrub to replay it."""
     world = rrb.Spatial3DView(
-        name="World", origin="world", background=[250, 250, 250], line_grid=rrb.LineGrid3D(visible=False)
+        name="World", origin="world", background=[250, 250, 250], line_grid=rrb.LineGrid3D(visible=False),
+        eye_controls=rrb.EyeControls3D(kind="Orbital", tracking_entity=CAMERA, eye_up=[0.0, -1.0, 0.0]),
     )
     image = rrb.Spatial2DView(name="Camera", origin=IMAGE)
     plots = rrb.Tabs(
-        rrb.TimeSeriesView(name="Tracking", origin=TRACKING_PLOTS),
+        rrb.TimeSeriesView(name="Residuals", origin=TRACKING_PLOTS, contents=[
+            f"{TRACKING_PLOTS}/rmse_before", f"{TRACKING_PLOTS}/rmse_after"]),
+        rrb.TimeSeriesView(name="Divergence ratio", origin=f"{TRACKING_PLOTS}/rmse_ratio"),
         rrb.TimeSeriesView(name="Counts", origin=COUNT_PLOTS),
         rrb.TimeSeriesView(name="Timing (ms)", origin=TIMING_PLOTS),
     )
-    events = rrb.TextLogView(name="Events", origin=EVENT_LOG)
+    events = rrb.TextLogView(
+        name="Events", origin=EVENT_LOG,
+        rows=rrb.TextLogRows(filter_by_log_level=["INFO", "WARN", "ERROR", "CRITICAL"]),
+        columns=rrb.TextLogColumns(text_log_columns=[
+            rrb.encodings.TextLogColumn("LogLevel"), rrb.encodings.TextLogColumn("Body")]),
+    )
     return rrb.Blueprint(
         rrb.Horizontal(world, rrb.Vertical(image, plots, events, row_shares=[3, 2, 2]), column_shares=[3, 2]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="expanded", timeline=FRAME_TIMELINE),
+        rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="Following"),
     )

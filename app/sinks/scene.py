@@ -70,13 +70,24 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
 
 
 def event_text(event: Event) -> str:
-    """One line for a log: ``frame 12 divergence_detected (ratio=1.31)``."""
-    details = ", ".join(f"{key}={_short(value)}" for key, value in event.details.items())
+    """One line for a log: ``frame 12 divergence_detected (ratio=1.31)``. Details too long for a line (poses,
+    matrices) are left to events.jsonl."""
+    shown = {key: _short(value) for key, value in event.details.items()}
+    details = ", ".join(f"{key}={text}" for key, text in shown.items() if text is not None)
     return f"frame {event.frame_index} {event.kind.value}" + (f" ({details})" if details else "")
 
 
-def _short(value) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
+MAX_LISTED_VALUES = 3
+
+
+def _short(value) -> str | None:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        if len(value) > MAX_LISTED_VALUES or not all(isinstance(item, (int, float)) for item in value):
+            return None
+        return "[" + ", ".join(_short(item) for item in value) + "]"
+    return str(value)
 
 
 def inverse_depth_colors(inverse_depths: np.ndarray) -> np.ndarray:

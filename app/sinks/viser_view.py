@@ -1,0 +1,445 @@
+"""The live browser page (viser): the 3D scene, the current image, status, the event log and playback controls.
+
+Two threads meet here. The tracking thread calls the Sink methods, which only store what arrived (under a lock,
+a few microseconds). A refresher thread draws the stored state into the page at ``refresh_hz`` (the page does
+not need every frame, and drawing never slows tracking). The controls run on viser's threads and only call the
+Player, which applies them when the next frame is about to be handed out; restart also clears the page.
+
+Scene (the estimate's world: first camera frame, y down, so "up" is -y): the path, the ground truth aligned to
+it (Sim(3), refitted when the keyframes change), keyframe frustums with thumbnails, the current camera, the
+direct cloud colored by inverse depth and the feature cloud; each layer can be switched off.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict, deque
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import cv2
+import numpy as np
+import viser
+import viser.transforms as vtf
+
+from app.sinks.scene import (
+    CURRENT_CAMERA_COLOR,
+    ESTIMATE_COLOR,
+    EVENT_STYLES,
+    FEATURE_POINT_COLOR,
+    GROUND_TRUTH_COLOR,
+    KEYFRAME_COLOR,
+    OVERLAY_POINT_COLOR,
+    GroundTruthOverlay,
+    PathHistory,
+    event_text,
+    inverse_depth_colors,
+)
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.trajectory import Trajectory
+
+REFRESH_HZ = 10.0  # page updates per second; the odometry runs at its own pace
+EVENT_LOG_LENGTH = 12  # events listed on the page, newest first
+THUMBNAIL_WIDTH = 120  # pixels of a keyframe frustum's thumbnail
+# Images of the last frames, kept (by reference) for the thumbnails of keyframes announced late: an initializer
+# makes its first frame a keyframe only once it succeeds, several frames later.
+RECENT_IMAGES = 32
+FPS_SMOOTHING = 0.1  # weight of the newest frame interval in the frames-per-second average
+# Sizes in the scene follow the scene's extent (monocular scale is arbitrary), never below MIN_SCENE_SIZE.
+# The scene's size is the diagonal of the box holding the path and the clouds between these percentiles (stray
+# far points ignored); it is followed when it changes by SCENE_RESIZE_FACTOR.
+MIN_SCENE_SIZE = 1.0
+SCENE_PERCENTILES = (10.0, 50.0, 90.0)
+SCENE_RESIZE_FACTOR = 1.5
+FRUSTUM_FRACTION = 0.025
+POINT_FRACTION = 0.003
+INITIAL_VIEW_OFFSET = np.array([0.0, -0.5, -1.0])  # new clients look from behind and above (y is down)
+LINE_THICKNESS_PX = 3.0
+MAX_DROP = 1000
+SPEEDS = (0.0, 4.0, 0.25)  # slider min, max, step; 0 = as fast as possible
+DEFAULT_DROP = 10
+
+LAYERS = ("trajectory", "ground truth", "direct cloud", "feature cloud", "keyframes", "camera")
+
+
+class PlayerControls(Protocol):
+    """What the page asks of the player (app.player.Player)."""
+
+    paused: bool
+    speed: float
+
+    def pause(self) -> None: ...
+    def resume(self) -> None: ...
+    def step(self) -> None: ...
+    def drop_next(self, count: int) -> None: ...
+    def request_restart(self) -> None: ...
+    def stop(self) -> None: ...
+
+
+@dataclass
+class _LiveState:
+    """What the sink methods store for the refresher; written under ViserView._state_lock only."""
+
+    path: PathHistory = field(default_factory=PathHistory)
+    frame_index: int | None = None
+    image: np.ndarray | None = None
+    points_2d: np.ndarray | None = None
+    T_world_cam: np.ndarray | None = None
+    tracked: bool = False
+    processed: int = 0
+    tracked_count: int = 0
+    keyframes: int = 0
+    dropped: int = 0
+    fps: float = 0.0
+    last_arrival: float | None = None
+    thumbnails: dict[int, np.ndarray] = field(default_factory=dict)
+    recent_images: OrderedDict = field(default_factory=OrderedDict)  # frame index -> image
+    keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    direct_points: np.ndarray | None = None
+    direct_colors: np.ndarray | None = None
+    feature_points: np.ndarray | None = None
+    events: deque = field(default_factory=lambda: deque(maxlen=EVENT_LOG_LENGTH))
+
+
+@dataclass
+class _Drawing:
+    """A consistent copy of the live state, taken under the lock, drawn outside it."""
+
+    path: np.ndarray
+    trajectory: Trajectory | None
+    image: np.ndarray | None
+    points_2d: np.ndarray | None
+    T_world_cam: np.ndarray | None
+    thumbnails: dict[int, np.ndarray]
+    keyframe_poses: dict[int, np.ndarray]
+    direct_points: np.ndarray | None
+    direct_colors: np.ndarray | None
+    feature_points: np.ndarray | None
+    status: str
+    events: list[Event]
+
+
+class ViserView:
+    """A Sink that serves the live page at http://host:port (the server starts here, ``close`` stops it)."""
+
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        player: PlayerControls,
+        ground_truth: Trajectory | None = None,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        *,
+        refresh_hz: float = REFRESH_HZ,
+    ):
+        self.camera = camera
+        self.player = player
+        self.ground_truth = GroundTruthOverlay(ground_truth) if ground_truth is not None and len(ground_truth) else None
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction("-y")
+        self.server.initial_camera.position = (0.0, -3.0, -4.0)
+        self.server.initial_camera.look_at = (0.0, 0.0, 2.0)
+        self._state_lock = threading.Lock()
+        self._scene_lock = threading.RLock()
+        self._state = _LiveState()
+        # Versions count changes across restarts, so a fresh pass is never mistaken for one already drawn.
+        self._frame_version = self._map_version = 0
+        self._drawn_frame_version = self._drawn_map_version = 0
+        self._cleared = False
+        self._nodes: dict[str, tuple[str, Any]] = {}  # scene node name -> (layer, handle)
+        self._scene_size = MIN_SCENE_SIZE
+        self._build_panel()
+        self._stopping = threading.Event()
+        self._refresher = threading.Thread(target=self._refresh_loop, args=(1.0 / refresh_hz,), daemon=True,
+                                           name="viser-refresh")
+        self._refresher.start()
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.server.get_host()}:{self.port}"
+
+    # ------------------------------------------------------------------------------------ Sink protocol
+
+    def on_frame(self, frame: Any, result: FrameResult) -> None:
+        now = time.monotonic()
+        with self._state_lock:
+            if self._state.frame_index is not None and result.frame_index <= self._state.frame_index:
+                self._start_over()  # the frames started over: a restart
+            state = self._state
+            if state.last_arrival is not None:
+                rate = 1.0 / max(now - state.last_arrival, 1e-6)
+                state.fps = rate if state.fps == 0.0 else (1 - FPS_SMOOTHING) * state.fps + FPS_SMOOTHING * rate
+            state.last_arrival = now
+            state.frame_index = result.frame_index
+            state.image = getattr(frame, "image", None)
+            state.points_2d = result.points_2d
+            state.T_world_cam = result.T_world_cam
+            state.tracked = result.tracked
+            state.processed += 1
+            state.tracked_count += bool(result.tracked)
+            if result.T_world_cam is not None:
+                state.path.add(result.timestamp, result.T_world_cam)
+            if result.is_keyframe:
+                state.keyframes += 1
+            if state.image is not None:
+                state.recent_images[result.frame_index] = state.image
+                if len(state.recent_images) > RECENT_IMAGES:
+                    state.recent_images.popitem(last=False)
+            self._frame_version += 1
+
+    def on_event(self, event: Event) -> None:
+        with self._state_lock:
+            if event.kind is EventKind.FRAMES_DROPPED:
+                self._state.dropped += int(event.details.get("count", 0))
+            if EVENT_STYLES[event.kind].marked:
+                self._state.events.appendleft(event)
+            self._frame_version += 1
+
+    def on_map(self, snapshot: MapSnapshot) -> None:
+        direct_colors = None
+        if snapshot.direct_points_world is not None:
+            direct_colors = inverse_depth_colors(snapshot.direct_inverse_depths)
+        with self._state_lock:
+            state = self._state
+            for index in snapshot.keyframe_poses.keys() - state.thumbnails.keys():
+                if index in state.recent_images:
+                    state.thumbnails[index] = _thumbnail(state.recent_images[index])
+            state.keyframe_poses = dict(snapshot.keyframe_poses)
+            state.direct_points, state.direct_colors = snapshot.direct_points_world, direct_colors
+            state.feature_points = snapshot.feature_points_world
+            self._map_version += 1
+
+    def _start_over(self) -> None:
+        """Forget the pass shown so far (call with the state lock held); the next refresh clears the page."""
+        self._state = _LiveState()
+        self._cleared = True
+
+    def close(self) -> None:
+        self._stopping.set()
+        self._refresher.join(timeout=5.0)
+        self.server.stop()
+
+    # ------------------------------------------------------------------------------------ the panel
+
+    def _build_panel(self) -> None:
+        gui = self.server.gui
+        gui.configure_theme(control_width="large", show_share_button=False)
+        gui.main_panel.dock_right()
+        gui.set_panel_label("FDMO")
+        self.status = gui.add_markdown("waiting for the first frame")
+        self.image = gui.add_image(np.zeros((self.camera.height, self.camera.width, 3), np.uint8),
+                                   label="camera", format="jpeg", jpeg_quality=80)
+        with gui.add_folder("Playback"):
+            self.play_pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE)
+            self.step_button = gui.add_button("Step one frame", icon=viser.Icon.PLAYER_SKIP_FORWARD)
+            self.speed = gui.add_slider("Speed (0 = max)", *SPEEDS, initial_value=float(self.player.speed))
+            self.drop_count = gui.add_number("Frames to drop", DEFAULT_DROP, min=1, max=MAX_DROP, step=1)
+            self.drop_button = gui.add_button("Drop frames", icon=viser.Icon.PLAYER_TRACK_NEXT)
+            self.restart_button = gui.add_button("Restart", icon=viser.Icon.REFRESH, color="red")
+        with gui.add_folder("Layers"):
+            self.layers = {name: gui.add_checkbox(name, True) for name in LAYERS}
+        with gui.add_folder("Events"):
+            self.event_log = gui.add_markdown("no events yet")
+
+        self.play_pause.on_click(lambda _: self._toggle_pause())
+        self.step_button.on_click(lambda _: self.player.step())
+        self.speed.on_update(lambda _: setattr(self.player, "speed", self.speed.value))
+        self.drop_button.on_click(lambda _: self.player.drop_next(int(self.drop_count.value)))
+        self.restart_button.on_click(lambda _: self._restart())
+        for name, checkbox in self.layers.items():
+            checkbox.on_update(lambda _, layer=name: self._show_layer(layer))
+
+    def _toggle_pause(self) -> None:
+        if self.player.paused:
+            self.player.resume()
+        else:
+            self.player.pause()
+        self._show_play_state()
+
+    def _show_play_state(self) -> None:
+        paused = self.player.paused
+        self.play_pause.label = "Play" if paused else "Pause"
+        self.play_pause.icon = viser.Icon.PLAYER_PLAY if paused else viser.Icon.PLAYER_PAUSE
+
+    def _restart(self) -> None:
+        self.player.request_restart()
+        with self._state_lock:
+            self._start_over()
+        self.refresh()
+
+    # ------------------------------------------------------------------------------------ drawing
+
+    def _refresh_loop(self, period_s: float) -> None:
+        while not self._stopping.wait(period_s):
+            self.refresh()
+
+    def refresh(self) -> None:
+        """Draw what changed since the last refresh (called by the refresher thread; safe from any thread)."""
+        with self._scene_lock:
+            with self._state_lock:
+                frame_changed = self._frame_version != self._drawn_frame_version
+                map_changed = self._map_version != self._drawn_map_version
+                cleared, self._cleared = self._cleared, False
+                self._drawn_frame_version, self._drawn_map_version = self._frame_version, self._map_version
+                drawing = self._copy_for_drawing(with_trajectory=map_changed)
+            if cleared:
+                self._clear_scene()
+            if frame_changed or cleared:
+                self._draw_frame(drawing)
+            if map_changed:
+                self._draw_map(drawing)
+
+    def _copy_for_drawing(self, with_trajectory: bool) -> _Drawing:
+        state = self._state
+        return _Drawing(
+            path=state.path.positions(),
+            trajectory=state.path.trajectory() if with_trajectory and self.ground_truth is not None else None,
+            image=state.image, points_2d=state.points_2d, T_world_cam=state.T_world_cam,
+            thumbnails=dict(state.thumbnails), keyframe_poses=dict(state.keyframe_poses),
+            direct_points=state.direct_points, direct_colors=state.direct_colors,
+            feature_points=state.feature_points, status=self._status_text(state), events=list(state.events),
+        )
+
+    def _status_text(self, state: _LiveState) -> str:
+        if state.processed == 0:
+            return "waiting for the first frame"
+        condition = "tracking" if state.tracked else "lost" if len(state.path) else "initializing"
+        if getattr(self.player, "finished", False):
+            condition += ", sequence finished"
+        elif self.player.paused:
+            condition += ", paused"
+        return (
+            f"**{condition}** at frame {state.frame_index}, {state.fps:.1f} fps\n\n"
+            f"| processed | tracked | keyframes | dropped |\n|---|---|---|---|\n"
+            f"| {state.processed} | {state.tracked_count} | {state.keyframes} | {state.dropped} |"
+        )
+
+    def _draw_frame(self, drawing: _Drawing) -> None:
+        scene = self.server.scene
+        self.status.content = drawing.status
+        self.event_log.content = _event_markdown(drawing.events)
+        self._show_play_state()
+        if drawing.image is not None:
+            self.image.image = _overlay(drawing.image, drawing.points_2d)
+        if len(drawing.path) >= 2:
+            self._add("trajectory", "/trajectory", scene.add_line_segments, points=_segments(drawing.path),
+                      colors=ESTIMATE_COLOR, thickness=LINE_THICKNESS_PX, thickness_units="screen")
+        if drawing.T_world_cam is not None:
+            camera = self._node("/camera")
+            if camera is None:
+                camera = self._add("camera", "/camera", scene.add_camera_frustum, **self._frustum(),
+                                   color=CURRENT_CAMERA_COLOR, thickness=LINE_THICKNESS_PX, thickness_units="screen")
+            camera.wxyz, camera.position = _wxyz_position(drawing.T_world_cam)
+
+    def _draw_map(self, drawing: _Drawing) -> None:
+        scene = self.server.scene
+        self._fit_scene(drawing)
+        point_size = POINT_FRACTION * self._scene_size
+        if drawing.direct_points is not None:
+            self._add("direct cloud", "/map/direct", scene.add_point_cloud,
+                      points=drawing.direct_points.astype(np.float32), colors=drawing.direct_colors,
+                      point_size=point_size, point_shape="circle")
+        if drawing.feature_points is not None:
+            self._add("feature cloud", "/map/features", scene.add_point_cloud,
+                      points=drawing.feature_points.astype(np.float32), colors=FEATURE_POINT_COLOR,
+                      point_size=point_size, point_shape="diamond")
+        for index, T_world_cam in drawing.keyframe_poses.items():
+            frustum = self._node(f"/keyframes/{index}")
+            if frustum is None:
+                frustum = self._add("keyframes", f"/keyframes/{index}", scene.add_camera_frustum,
+                                    **self._frustum(), color=KEYFRAME_COLOR,
+                                    image=drawing.thumbnails.get(index), thickness=1.5, thickness_units="screen")
+            frustum.wxyz, frustum.position = _wxyz_position(T_world_cam)
+        if drawing.trajectory is not None:
+            aligned = self.ground_truth.positions_in_estimate_frame(drawing.trajectory)
+            if aligned is not None and len(aligned) >= 2:
+                self._add("ground truth", "/ground_truth", scene.add_line_segments, points=_segments(aligned),
+                          colors=GROUND_TRUTH_COLOR, thickness=LINE_THICKNESS_PX, thickness_units="screen")
+
+    def _fit_scene(self, drawing: _Drawing) -> None:
+        """Follow the scene's size (sizes of frustums and points) and frame it for the clients that connect
+        next; clients already looking keep their viewpoint."""
+        parts = [part for part in (drawing.path, drawing.direct_points, drawing.feature_points)
+                 if part is not None and len(part)]
+        if not parts:
+            return
+        points = np.concatenate(parts)
+        low, centre, high = np.percentile(points, SCENE_PERCENTILES, axis=0)
+        size = max(float(np.linalg.norm(high - low)), MIN_SCENE_SIZE)
+        if not 1.0 / SCENE_RESIZE_FACTOR < size / self._scene_size < SCENE_RESIZE_FACTOR:
+            self._scene_size = size
+            for layer, handle in self._nodes.values():
+                if layer in ("keyframes", "camera"):
+                    handle.scale = FRUSTUM_FRACTION * size
+        self.server.initial_camera.look_at = centre
+        self.server.initial_camera.position = centre + INITIAL_VIEW_OFFSET * size
+
+    def _frustum(self) -> dict[str, float]:
+        fov_y = 2.0 * np.arctan2(self.camera.height / 2.0, self.camera.fy)
+        return {"fov": float(fov_y), "aspect": self.camera.width / self.camera.height,
+                "scale": FRUSTUM_FRACTION * self._scene_size}
+
+    def _add(self, layer: str, name: str, add_node, **properties) -> Any:
+        """Create (or replace) a scene node of a layer, shown or hidden as the layer's checkbox says."""
+        handle = add_node(name, visible=self.layers[layer].value, **properties)
+        self._nodes[name] = (layer, handle)
+        return handle
+
+    def _node(self, name: str) -> Any:
+        return self._nodes[name][1] if name in self._nodes else None
+
+    def _show_layer(self, layer: str) -> None:
+        visible = self.layers[layer].value
+        with self._scene_lock:
+            for node_layer, handle in self._nodes.values():
+                if node_layer == layer:
+                    handle.visible = visible
+
+    def _clear_scene(self) -> None:
+        for _, handle in self._nodes.values():
+            handle.remove()
+        self._nodes.clear()
+
+
+def _segments(positions: np.ndarray) -> np.ndarray:
+    """(N-1, 2, 3) float32 line segments joining consecutive positions (viser draws segments, not strips)."""
+    return np.stack([positions[:-1], positions[1:]], axis=1).astype(np.float32)
+
+
+def _wxyz_position(T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return vtf.SO3.from_matrix(T_world_cam[:3, :3]).wxyz, T_world_cam[:3, 3].copy()
+
+
+def _rgb(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
+
+
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    height = max(1, round(image.shape[0] * THUMBNAIL_WIDTH / image.shape[1]))
+    return _rgb(cv2.resize(image, (THUMBNAIL_WIDTH, height), interpolation=cv2.INTER_AREA))
+
+
+def _overlay(image: np.ndarray, points_2d: np.ndarray | None) -> np.ndarray:
+    """The image in RGB with the tracked pixels as 3x3 dots (painted in one vectorized write)."""
+    rgb = _rgb(image).copy()
+    if points_2d is None or len(points_2d) == 0:
+        return rgb
+    height, width = rgb.shape[:2]
+    pixels = np.round(np.asarray(points_2d, dtype=float).reshape(-1, 2)).astype(int)
+    offsets = np.array([(du, dv) for du in (-1, 0, 1) for dv in (-1, 0, 1)])
+    dots = (pixels[:, None, :] + offsets[None]).reshape(-1, 2)
+    inside = (dots[:, 0] >= 0) & (dots[:, 0] < width) & (dots[:, 1] >= 0) & (dots[:, 1] < height)
+    rgb[dots[inside, 1], dots[inside, 0]] = OVERLAY_POINT_COLOR
+    return rgb
+
+
+def _event_markdown(events: list[Event]) -> str:
+    if not events:
+        return "no events yet"
+    return "\n".join(f"- {EVENT_STYLES[event.kind].level}: {event_text(event)}" for event in events)
