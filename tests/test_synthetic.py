@@ -118,8 +118,8 @@ def test_surface_points_project_where_the_depth_map_has_their_depth(room_rendere
         uv = uv[camera.in_image(uv, border=1.0)]
         # Visible: the four pixels around the projection see this plane.
         x, y = np.floor(uv).astype(int).T
-        distances = [np.abs((on_plane_pixels[y + dy, x + dx] - plane.origin) @ plane.normal) for dy in (0, 1) for dx in (0, 1)]
-        visible = np.max(distances, axis=0) < 1e-5
+        neighbours = [on_plane_pixels[y + dy, x + dx] for dy in (0, 1) for dx in (0, 1)]
+        visible = np.max([np.abs((p - plane.origin) @ plane.normal) for p in neighbours], axis=0) < 1e-5
         interpolated = _bilinear(1.0 / depth, uv[visible])
         np.testing.assert_allclose(interpolated, 1.0 / z[visible], rtol=1e-5)
         visible_count += visible.sum()
@@ -198,7 +198,7 @@ def test_each_preset_gives_the_frames_asked_for_in_time_order(preset):
     assert len(trajectory.timestamps) == len(trajectory.poses) == len(trajectory.frame_numbers) == 40
     assert np.all(np.diff(trajectory.timestamps) > 0)
     rotations = trajectory.poses[:, :3, :3]
-    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.broadcast_to(np.eye(3), (40, 3, 3)), atol=1e-12)
+    np.testing.assert_allclose(rotations @ rotations.transpose(0, 2, 1), np.tile(np.eye(3), (40, 1, 1)), atol=1e-12)
 
 
 def test_smooth_motion_moves_like_a_hand_held_camera():
@@ -233,7 +233,8 @@ def test_jump_leaves_out_a_block_of_frames_for_a_large_baseline():
     translation, rotation = _steps(trajectory.poses)
     gap = int(np.argmax(np.diff(trajectory.frame_numbers)))
     assert np.diff(trajectory.frame_numbers)[gap] == len(trajectory.dropped) + 1 > 5
-    assert trajectory.timestamps[gap + 1] - trajectory.timestamps[gap] == pytest.approx((len(trajectory.dropped) + 1) / 30)
+    interval = trajectory.timestamps[gap + 1] - trajectory.timestamps[gap]
+    assert interval == pytest.approx((len(trajectory.dropped) + 1) / 30)
     others = np.delete(translation, gap)
     assert translation[gap] > 5 * np.median(others) and rotation[gap] > 3 * np.median(np.delete(rotation, gap))
 

@@ -84,7 +84,9 @@ def textured_plane(
     )
 
 
-def box(name: str, centre, size_m, yaw_rad: float, texels_per_metre: float, rng: np.random.Generator) -> list[TexturedPlane]:
+def box(
+    name: str, centre, size_m, yaw_rad: float, texels_per_metre: float, rng: np.random.Generator
+) -> list[TexturedPlane]:
     """The 6 one-sided faces of a box rotated by ``yaw_rad`` about the vertical (y) axis, normals outward."""
     rotation = so3_exp(np.array([0.0, yaw_rad, 0.0]))
     half = np.asarray(size_m, float) / 2
@@ -120,7 +122,7 @@ ROOM_MIN = np.array([-4.0, -2.5, -3.0])
 ROOM_MAX = np.array([4.0, 1.5, 8.0])
 ROOM_TEXELS_PER_METRE = 80.0  # 1.25 cm texels: walls 4-8 m away (0.8-1.6 cm a pixel), the floor nearer
 OBJECT_TEXELS_PER_METRE = 150.0  # objects 2-5 m away: 0.4-1 cm a pixel
-# Shading of the room: a distant light from above, left and behind the camera, and ambient light. Constant on
+# Shading of the room: a distant light above, right of and behind the camera, plus ambient light. Constant on
 # each plane (Lambert), so views stay photometrically consistent, while surfaces meeting at an edge differ.
 LIGHT_DIRECTION = np.array([0.3, -1.0, -0.5]) / np.linalg.norm([0.3, -1.0, -0.5])  # towards the light
 AMBIENT_SHARE = 0.6
@@ -168,7 +170,8 @@ def plane_scene(seed: int = 0) -> Scene:
     rng = np.random.default_rng([seed, 1])
     width, height = PLANE_SIZE_M
     x, y, _ = np.eye(3)
-    plane = textured_plane("plane", (-width / 2, -height / 2, PLANE_DEPTH_M), x, y, PLANE_SIZE_M, PLANE_TEXELS_PER_METRE, rng)
+    origin = (-width / 2, -height / 2, PLANE_DEPTH_M)
+    plane = textured_plane("plane", origin, x, y, PLANE_SIZE_M, PLANE_TEXELS_PER_METRE, rng)
     return Scene("plane", (plane,))
 
 

@@ -41,8 +41,10 @@ class TextureConfig:
     blur_sigma_texels: float = 0.8  # anti-aliases the painted edges
 
 
-def make_texture(width: int, height: int, rng: np.random.Generator, config: TextureConfig = TextureConfig()) -> np.ndarray:
-    """A (height, width) float32 texture with values in ``config.intensity_range`` (approximately, before blur)."""
+def make_texture(
+    width: int, height: int, rng: np.random.Generator, config: TextureConfig = TextureConfig()
+) -> np.ndarray:
+    """A (height, width) float32 texture: its 2nd..98th percentiles stretched onto ``config.intensity_range``."""
     texture = _value_noise(width, height, rng, config.octaves)
     tiles = width * height / TILE_TEXELS
     _add_blobs(texture, rng, _count(config.blobs_per_tile * tiles, rng), config)
