@@ -46,6 +46,9 @@ def test_same_seed_renders_the_same_frames_and_another_seed_other_ones():
         np.testing.assert_array_equal(a.T_world_cam, b.T_world_cam)
     assert np.abs(first[2].image.astype(float) - other[2].image).mean() > 10.0
     assert not np.allclose(first.ground_truth.poses, other.ground_truth.poses)
+    # Scenes are cached per seed: textures drawn afresh must be the cached ones.
+    for fresh, cached in zip(room_scene.__wrapped__(5).planes, room_scene(5).planes):
+        np.testing.assert_array_equal(fresh.texture, cached.texture)
 
 
 # ------------------------------------------------------------------------------------------ exact geometry
