@@ -53,6 +53,16 @@ def _drop(text: str) -> tuple[int, int]:
     return parsed
 
 
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--port {text}: expected an integer") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"--port {text}: must be between 1 and 65535")
+    return port
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _OneLineParser(prog="fdmo", description="FDMO: feature assisted direct monocular odometry")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
@@ -72,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
     run.add_argument("--viser", action="store_true", help="live browser view; stays up until Ctrl-C")
-    run.add_argument("--port", type=int, default=DEFAULT_VISER_PORT, help="port of the viser page")
+    run.add_argument("--port", type=_port, default=DEFAULT_VISER_PORT, help="port of the viser page")
     run.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     _add_source_options(run)
 
@@ -110,6 +120,7 @@ def command_run(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
+    _check_drops(args.drops, sequence.indices)
     player = Player(sequence, args.drops)
     sinks = []  # run_sequence closes them
     if not args.no_rrd:
@@ -130,6 +141,15 @@ def command_run(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(_summary_text(summary.metrics, out_dir))
     return EXIT_OK
+
+
+def _check_drops(drops: list[tuple[int, int]], frame_indices) -> None:
+    """A drop at a frame the run never reaches is a typo, not an experiment: say so."""
+    played = set(frame_indices.tolist())
+    for frame, count in drops:
+        if frame not in played:
+            raise InputError(f"--drop {frame}:{count}: frame {frame} is not among the frames played "
+                             f"({frame_indices[0]}..{frame_indices[-1]})")
 
 
 @contextlib.contextmanager

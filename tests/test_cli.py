@@ -247,6 +247,8 @@ def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request
         (["run", "{dataset}", "--set", "seed"], "expected key=value"),
         (["run", "{dataset}", "--set", "klt.nonsense=1"], "unknown config key"),
         (["run", "{dataset}", "--drop", "5"], "FRAME:COUNT"),
+        (["run", "{dataset}", "--drop", "40:2"], "not among the frames played (0..11)"),
+        (["run", "{dataset}", "--viser", "--port", "70000"], "between 1 and 65535"),
         (["run", "{dataset}", "--format", "nonsense"], "unknown layout"),
         (["info", "{empty}"], "unknown dataset layout"),
         (["eval", "{missing}", "{missing}"], "missing"),
