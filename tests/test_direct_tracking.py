@@ -109,5 +109,6 @@ def test_immature_point_depths_converge_to_the_truth():
     assert np.median(relative_error) < 0.01
     assert np.percentile(relative_error, 90) < 0.05
     # The truth lies inside the final interval for most points.
-    inside = (points.idepth_min[ready] <= true_idepth[ready] * 1.01) & (true_idepth[ready] * 0.99 <= points.idepth_max[ready])
+    low, high, truth = points.idepth_min[ready], points.idepth_max[ready], true_idepth[ready]
+    inside = (low <= truth * 1.01) & (truth * 0.99 <= high)
     assert inside.mean() > 0.8

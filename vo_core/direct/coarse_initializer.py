@@ -221,7 +221,8 @@ class CoarseInitializer:
             else:
                 fails += 1
                 lam = min(lam * 4.0, 1e4)
-            if not np.linalg.norm(inc) > config.min_increment or iteration >= max_iterations or fails >= config.max_fails:
+            converged = not np.linalg.norm(inc) > config.min_increment
+            if converged or iteration >= max_iterations or fails >= config.max_fails:
                 break
             iteration += 1
         return T, affine
@@ -389,7 +390,8 @@ class CoarseInitializer:
         child, parent_state = self.levels[source], self.levels[source + 1]
         good = child.good
         weights = np.bincount(child.parent[good], weights=child.hessian[good], minlength=len(parent_state))
-        sums = np.bincount(child.parent[good], weights=child.iR[good] * child.hessian[good], minlength=len(parent_state))
+        weighted = child.iR[good] * child.hessian[good]
+        sums = np.bincount(child.parent[good], weights=weighted, minlength=len(parent_state))
         has = weights > 0
         parent_state.iR[has] = parent_state.idepth[has] = sums[has] / weights[has]
         parent_state.good = parent_state.good | has

@@ -425,7 +425,8 @@ def _depth_system(points: PatternPoints, rays, targets, idepth, in_bounds, outli
         residual = hit[..., 0] - (factor * points.color[rows] + offset)
         w = huber_weight(residual, config.huber_threshold)
         e = np.sum(weight_sq[rows] * w * residual**2 * (2.0 - w), axis=1)
-        d_idepth = (hit[..., 1] * camera.fx * (t[0] - t[2] * u) + hit[..., 2] * camera.fy * (t[1] - t[2] * v)) * inverse_z
+        d_u, d_v = camera.fx * (t[0] - t[2] * u) * inverse_z, camera.fy * (t[1] - t[2] * v) * inverse_z
+        d_idepth = hit[..., 1] * d_u + hit[..., 2] * d_v  # d residual / d inverse depth
         hw = w * weight_sq[rows]
         H[rows] += np.sum(hw * d_idepth**2, axis=1)
         b[rows] += np.sum(hw * residual * d_idepth, axis=1)

@@ -215,7 +215,11 @@ class DirectOdometry:
         result.events.append(
             Event(
                 EventKind.KEYFRAME_ADDED, first.frame_index, float(first.timestamp),
-                {"keyframe": first.frame_index, "window": [first.frame_index], "active_points": len(first.active_idepth)},
+                {
+                    "keyframe": first.frame_index,
+                    "window": [first.frame_index],
+                    "active_points": len(first.active_idepth),
+                },
             )
         )
         T_world_cam = first.T_world_cam @ outcome.T_first_second
@@ -290,7 +294,8 @@ class DirectOdometry:
             if attempt == 0:
                 prior_rmse = tracking.rmse_before
             rmse = tracking.rmse_per_level
-            if tracking.success and np.isfinite(rmse[0]) and not (best is not None and rmse[0] >= best.rmse_per_level[0]):
+            beats_best = best is None or rmse[0] < best.rmse_per_level[0]
+            if tracking.success and np.isfinite(rmse[0]) and beats_best:
                 best = tracking
             if best is not None:
                 # Later guesses must beat the best RMSE reached so far on every level, or they are cut short.
@@ -511,7 +516,9 @@ class DirectOdometry:
     def _set_tracking_reference(self, keyframe: Keyframe) -> None:
         """All active points of the window, projected into the new keyframe (makeCoarseDepthL0)."""
         T_cam_world = se3_inverse(keyframe.T_world_cam)
-        points = [transform_points(T_cam_world, k.active_points_world()) for k in self.keyframes if len(k.active_idepth)]
+        points = [
+            transform_points(T_cam_world, k.active_points_world()) for k in self.keyframes if len(k.active_idepth)
+        ]
         points = np.concatenate(points) if points else np.zeros((0, 3))
         front = points[:, 2] > 0
         points = points[front]
