@@ -63,6 +63,15 @@ def _huber_cost_and_weights(errors: np.ndarray, k: float) -> tuple[float, np.nda
     return float(cost), weights
 
 
+def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
+    """Sums of ``values`` (n, ...) grouped by ``index`` (n,) into (count, ...): one bincount for all entries."""
+    flat = values.reshape(len(values), -1)
+    width = flat.shape[1]
+    bins = (index[:, None] * width + np.arange(width)).ravel()
+    sums = np.bincount(bins, weights=flat.ravel(), minlength=count * width)
+    return sums.reshape((count, *values.shape[1:]))
+
+
 class _Window:
     """The reprojection model of a window, evaluated at given poses and points."""
 
@@ -114,33 +123,34 @@ class _Window:
         F, M = self.num_poses, self.num_points
         a, j = problem.observation_pose, problem.observation_point
 
-        H_pp = np.zeros((F, 6, 6))
-        np.add.at(H_pp, a, np.einsum("nri,nrj->nij", wJp, J_pose))
-        V = np.zeros((M, 3, 3))
-        np.add.at(V, j, np.einsum("nri,nrj->nij", wJl, J_point))
-        b_p = np.zeros((F, 6))
-        np.add.at(b_p, a, -np.einsum("nri,nr->ni", wJp, residuals))
-        b_l = np.zeros((M, 3))
-        np.add.at(b_l, j, -np.einsum("nri,nr->ni", wJl, residuals))
-        W = np.zeros((M, F, 6, 3))  # the point-pose blocks, one observation each
-        W[j, a] = np.einsum("nri,nrj->nij", wJp, J_point)
+        wJp_T = wJp.transpose(0, 2, 1)
+        wJl_T = wJl.transpose(0, 2, 1)
+        H_pp = _sum_by(a, wJp_T @ J_pose, F)  # (F, 6, 6)
+        V = _sum_by(j, wJl_T @ J_point, M)  # (M, 3, 3)
+        b_p = -_sum_by(a, (wJp_T @ residuals[:, :, None])[:, :, 0], F)  # (F, 6)
+        b_l = -_sum_by(j, (wJl_T @ residuals[:, :, None])[:, :, 0], M)  # (M, 3)
 
         # Marquardt's damping scales the diagonal; the floor keeps a block regular that no residual reaches.
         H_pp += (damping * np.einsum("fii->fi", H_pp) + DIAGONAL_FLOOR)[:, :, None] * np.eye(6)
         V += (damping * np.einsum("mii->mi", V) + DIAGONAL_FLOOR)[:, :, None] * np.eye(3)
         V_inv = np.linalg.inv(V)
-        Y = W @ V_inv[:, None]  # (M, F, 6, 3)
-        # Sum over points of Y_m W_m^T, as one matrix product over the stacked (point, coordinate) axis.
-        Y_rows = Y.transpose(1, 2, 0, 3).reshape(6 * F, 3 * M)
-        W_rows = W.transpose(1, 2, 0, 3).reshape(6 * F, 3 * M)
+        # The point-pose blocks W (one per observation) and W V^-1, laid out as (pose, 6) x (point, 3)
+        # matrices so that the sums over points become matrix products.
+        W_obs = wJp_T @ J_point  # (L, 6, 3)
+        W_rows = np.zeros((F, 6, M, 3))
+        W_rows[a, :, j, :] = W_obs
+        Y_rows = np.zeros((F, 6, M, 3))
+        Y_rows[a, :, j, :] = W_obs @ V_inv[j]
+        W_rows = W_rows.reshape(6 * F, 3 * M)
+        Y_rows = Y_rows.reshape(6 * F, 3 * M)
         S = block_diag(*H_pp) - Y_rows @ W_rows.T
         rhs = b_p.reshape(-1) - Y_rows @ b_l.reshape(-1)
         free = np.repeat(~problem.fixed, 6)
         delta_pose = np.zeros(6 * F)
         delta_pose[free] = np.linalg.solve(S[np.ix_(free, free)], rhs[free])
+        W_T_delta = (delta_pose @ W_rows).reshape(M, 3)
+        delta_point = (V_inv @ (b_l - W_T_delta)[:, :, None])[:, :, 0]
         delta_pose = delta_pose.reshape(F, 6)
-        W_T_delta = (delta_pose.reshape(1, -1) @ W_rows).reshape(M, 3)
-        delta_point = np.einsum("mij,mj->mi", V_inv, b_l - W_T_delta)
         return delta_pose, delta_point
 
 

@@ -41,7 +41,7 @@ class KltOdometry:
         self.seed = seed
         self.tracker = KltTracker(config.tracker)
         self.bootstrapper = Bootstrapper(
-            camera, config.bootstrap, config.corners, config.triangulation, self.tracker
+            camera, config.bootstrap, config.corners, config.triangulation, config.ba, self.tracker
         )
         self.bootstrapping = False
         self.landmarks = Landmarks()
@@ -51,6 +51,7 @@ class KltOdometry:
         self.landmarks_at_keyframe = 0
         self.previous_image: np.ndarray | None = None
         self.T_world_last: np.ndarray | None = None  # pose of the last tracked frame
+        self.last_tracked_index = -1
         self.velocity = np.eye(4)  # T_last_current of the last step, for the constant-velocity prediction
         self.recent_steps: deque[float] = deque(maxlen=RECENT_SPEED_FRAMES)
         self._events: list[Event] = []
@@ -119,7 +120,8 @@ class KltOdometry:
         if self.T_world_last is None:
             T_world_first, scale = np.eye(4), 1.0
         else:
-            T_world_first = self.T_world_last @ self.velocity
+            frames_since_lost = bootstrap.first_frame_index - self.last_tracked_index
+            T_world_first = self.T_world_last @ se3_exp(frames_since_lost * se3_log(self.velocity))
             scale = (np.median(self.recent_steps) if self.recent_steps else 1.0) * gap
         T_first_second = bootstrap.T_first_second.copy()
         T_first_second[:3, 3] *= scale
@@ -142,7 +144,7 @@ class KltOdometry:
         )
         # The motion of the bootstrap, spread evenly over its frames, starts the motion model.
         step = se3_exp(se3_log(T_first_second) / gap)
-        self._moved_to(T_world_second, step)
+        self._moved_to(bootstrap.second_frame_index, T_world_second, step)
         return T_world_second
 
     # ------------------------------------------------------------------------------------------- tracking
@@ -167,7 +169,7 @@ class KltOdometry:
         keep[np.flatnonzero(is_landmark)[~estimate.inliers]] = False
         self.tracks = self.tracks.select(keep)
         T_world_cam = estimate.T_world_cam
-        self._moved_to(T_world_cam, se3_inverse(self.T_world_last) @ T_world_cam)
+        self._moved_to(frame.index, T_world_cam, se3_inverse(self.T_world_last) @ T_world_cam)
 
         is_keyframe = self._wants_keyframe(frame.index, T_world_cam)
         if is_keyframe:
@@ -192,8 +194,9 @@ class KltOdometry:
             predicted[rows] = projected[usable]
         return predicted.astype(np.float32)
 
-    def _moved_to(self, T_world_cam: np.ndarray, step: np.ndarray) -> None:
+    def _moved_to(self, frame_index: int, T_world_cam: np.ndarray, step: np.ndarray) -> None:
         """Update the constant-velocity motion model and the recent speed with the newest pose."""
+        self.last_tracked_index = frame_index
         self.T_world_last = T_world_cam
         self.velocity = step
         self.recent_steps.append(float(np.linalg.norm(step[:3, 3])))
