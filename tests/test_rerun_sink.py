@@ -160,3 +160,12 @@ def test_restart_starts_a_fresh_path(tmp_path):
         sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
     assert len(sink.path) == 2
     sink.close()
+
+
+def test_recording_carries_the_default_blueprint(tmp_path):
+    path = tmp_path / "run.rrd"
+    run_synthetic(RerunSink(str(path), CAMERA))
+    blueprints = rr.chunk.RrdReader(path).blueprints()
+    assert blueprints and all(entry.application_id == "fdmo" for entry in blueprints)
+    views = {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream(store=blueprints[-1]).to_chunks()}
+    assert any(path.startswith("/view/") for path in views)  # the views of default_blueprint

@@ -41,9 +41,11 @@ from app.sinks.scene import (
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
     OVERLAY_POINT_COLOR,
+    Framing,
     GroundTruthOverlay,
     PathHistory,
     event_text,
+    framing,
     inverse_depth_colors,
 )
 from vo_core.events import Event, FrameResult, MapSnapshot
@@ -116,6 +118,7 @@ class RerunSink:
         self._pending_markers: list[Event] = []
         self._markers: list[tuple[np.ndarray, Event]] = []
         self._scalars = _ScalarColumns()
+        self._clouds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the latest direct, feature
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
@@ -145,6 +148,7 @@ class RerunSink:
         if self._last_index is not None:
             self._set_time(self._last_index, self._last_timestamp)
         radii = rr.Radius.ui_points(POINT_RADIUS_UI)
+        self._clouds = (snapshot.direct_points_world, snapshot.feature_points_world)
         if snapshot.direct_points_world is not None:
             colors = inverse_depth_colors(snapshot.direct_inverse_depths)
             self.recording.log(DIRECT_POINTS, rr.Points3D(snapshot.direct_points_world, colors=colors, radii=radii))
@@ -165,6 +169,9 @@ class RerunSink:
     def close(self) -> None:
         self._log_path(force_full=True)
         self._scalars.send(self.recording)
+        view = framing(self.path.positions(), *self._clouds)
+        if view is not None:  # the default view, now that the scene's extent is known
+            self.recording.send_blueprint(default_blueprint(view), make_active=True, make_default=True)
         self.recording.flush(timeout_sec=10.0)
         self.recording.disconnect()
 
@@ -271,13 +278,16 @@ class _ScalarColumns:
         self._rows.clear()
 
 
-def default_blueprint() -> rrb.Blueprint:
-    """The 3D world (its eye following the camera) on the left; on the right the camera image over the plots
-    (tabs) and the event log (routine DEBUG lines filtered out, one click brings them back). A recording
-    opens at its last frame, the whole run in view; press play or scrub to replay it."""
+def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
+    """The 3D world on the left, looked at from behind and above the scene (``view``, when known); on the right
+    the camera image over the plots (tabs) and the event log (routine DEBUG lines filtered out, one click brings
+    them back). A recording opens at its last frame, the whole run in view; press play or scrub to replay it."""
+    eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0])
+    if view is not None:
+        eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0], position=view.eye, look_target=view.centre)
     world = rrb.Spatial3DView(
         name="World", origin="world", background=[250, 250, 250], line_grid=rrb.LineGrid3D(visible=False),
-        eye_controls=rrb.EyeControls3D(kind="Orbital", tracking_entity=CAMERA, eye_up=[0.0, -1.0, 0.0]),
+        eye_controls=eye,
     )
     image = rrb.Spatial2DView(name="Camera", origin=IMAGE)
     plots = rrb.Tabs(

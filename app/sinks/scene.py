@@ -100,6 +100,32 @@ def inverse_depth_colors(inverse_depths: np.ndarray) -> np.ndarray:
     return _TURBO_RGB[np.round(255.0 * np.clip(normalized, 0.0, 1.0)).astype(np.intp)]
 
 
+# The scene's extent is the diagonal of the box holding the path and the clouds between these percentiles (stray
+# far points ignored), never below MIN_SCENE_SIZE; a viewer looks at its centre from VIEW_OFFSET x extent.
+SCENE_PERCENTILES = (10.0, 50.0, 90.0)
+MIN_SCENE_SIZE = 1.0
+VIEW_OFFSET = np.array([0.0, -0.5, -1.0])  # behind and above (the world's y points down)
+
+
+@dataclass(frozen=True)
+class Framing:
+    centre: np.ndarray
+    size: float
+
+    @property
+    def eye(self) -> np.ndarray:
+        return self.centre + VIEW_OFFSET * self.size
+
+
+def framing(*point_sets: np.ndarray | None) -> Framing | None:
+    """Where to look to see the path and the clouds: their robust centre and extent; None without points."""
+    parts = [np.asarray(points).reshape(-1, 3) for points in point_sets if points is not None and len(points)]
+    if not parts:
+        return None
+    low, centre, high = np.percentile(np.concatenate(parts), SCENE_PERCENTILES, axis=0)
+    return Framing(centre, max(float(np.linalg.norm(high - low)), MIN_SCENE_SIZE))
+
+
 class PathHistory:
     """The poses estimated so far, in the order they came (timestamps increase along a pass)."""
 

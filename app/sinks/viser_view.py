@@ -12,6 +12,7 @@ direct cloud colored by inverse depth and the feature cloud; each layer can be s
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict, deque
@@ -31,14 +32,19 @@ from app.sinks.scene import (
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
     OVERLAY_POINT_COLOR,
+    MIN_SCENE_SIZE,
+    Framing,
     GroundTruthOverlay,
     PathHistory,
+    framing,
     event_text,
     inverse_depth_colors,
 )
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.trajectory import Trajectory
+
+logger = logging.getLogger(__name__)
 
 REFRESH_HZ = 10.0  # page updates per second; the odometry runs at its own pace
 EVENT_LOG_LENGTH = 12  # events listed on the page, newest first
@@ -47,15 +53,10 @@ THUMBNAIL_WIDTH = 120  # pixels of a keyframe frustum's thumbnail
 # makes its first frame a keyframe only once it succeeds, several frames later.
 RECENT_IMAGES = 32
 FPS_SMOOTHING = 0.1  # weight of the newest frame interval in the frames-per-second average
-# Sizes in the scene follow the scene's extent (monocular scale is arbitrary), never below MIN_SCENE_SIZE.
-# The scene's size is the diagonal of the box holding the path and the clouds between these percentiles (stray
-# far points ignored); it is followed when it changes by SCENE_RESIZE_FACTOR.
-MIN_SCENE_SIZE = 1.0
-SCENE_PERCENTILES = (10.0, 50.0, 90.0)
+# Sizes in the scene are fractions of its extent (scene.framing), followed when it changes by this factor.
 SCENE_RESIZE_FACTOR = 1.5
 FRUSTUM_FRACTION = 0.025
 POINT_FRACTION = 0.003
-INITIAL_VIEW_OFFSET = np.array([0.0, -0.5, -1.0])  # new clients look from behind and above (y is down)
 LINE_THICKNESS_PX = 3.0
 MAX_DROP = 1000
 SPEEDS = (0.0, 4.0, 0.25)  # slider min, max, step; 0 = as fast as possible
@@ -139,8 +140,7 @@ class ViserView:
         self.ground_truth = GroundTruthOverlay(ground_truth) if ground_truth is not None and len(ground_truth) else None
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("-y")
-        self.server.initial_camera.position = (0.0, -3.0, -4.0)
-        self.server.initial_camera.look_at = (0.0, 0.0, 2.0)
+        self._frame_view(Framing(np.array([0.0, 0.0, MIN_SCENE_SIZE]), MIN_SCENE_SIZE))
         self._state_lock = threading.Lock()
         self._scene_lock = threading.RLock()
         self._state = _LiveState()
@@ -238,7 +238,8 @@ class ViserView:
         with gui.add_folder("Playback"):
             self.play_pause = gui.add_button("Pause", icon=viser.Icon.PLAYER_PAUSE)
             self.step_button = gui.add_button("Step one frame", icon=viser.Icon.PLAYER_SKIP_FORWARD)
-            self.speed = gui.add_slider("Speed (0 = max)", *SPEEDS, initial_value=float(self.player.speed))
+            initial_speed = float(np.clip(self.player.speed, SPEEDS[0], SPEEDS[1]))
+            self.speed = gui.add_slider("Speed (0 = max)", *SPEEDS, initial_value=initial_speed)
             self.drop_count = gui.add_number("Frames to drop", DEFAULT_DROP, min=1, max=MAX_DROP, step=1)
             self.drop_button = gui.add_button("Drop frames", icon=viser.Icon.PLAYER_TRACK_NEXT)
             self.restart_button = gui.add_button("Restart", icon=viser.Icon.REFRESH, color="red")
@@ -277,7 +278,10 @@ class ViserView:
 
     def _refresh_loop(self, period_s: float) -> None:
         while not self._stopping.wait(period_s):
-            self.refresh()
+            try:
+                self.refresh()
+            except Exception:  # a drawing bug must not freeze the page for the rest of the run
+                logger.exception("viser view: refresh failed")
 
     def refresh(self) -> None:
         """Draw what changed since the last refresh (called by the refresher thread; safe from any thread)."""
@@ -365,20 +369,20 @@ class ViserView:
     def _fit_scene(self, drawing: _Drawing) -> None:
         """Follow the scene's size (sizes of frustums and points) and frame it for the clients that connect
         next; clients already looking keep their viewpoint."""
-        parts = [part for part in (drawing.path, drawing.direct_points, drawing.feature_points)
-                 if part is not None and len(part)]
-        if not parts:
+        view = framing(drawing.path, drawing.direct_points, drawing.feature_points)
+        if view is None:
             return
-        points = np.concatenate(parts)
-        low, centre, high = np.percentile(points, SCENE_PERCENTILES, axis=0)
-        size = max(float(np.linalg.norm(high - low)), MIN_SCENE_SIZE)
-        if not 1.0 / SCENE_RESIZE_FACTOR < size / self._scene_size < SCENE_RESIZE_FACTOR:
-            self._scene_size = size
+        if not 1.0 / SCENE_RESIZE_FACTOR < view.size / self._scene_size < SCENE_RESIZE_FACTOR:
+            self._scene_size = view.size
             for layer, handle in self._nodes.values():
                 if layer in ("keyframes", "camera"):
-                    handle.scale = FRUSTUM_FRACTION * size
-        self.server.initial_camera.look_at = centre
-        self.server.initial_camera.position = centre + INITIAL_VIEW_OFFSET * size
+                    handle.scale = FRUSTUM_FRACTION * view.size
+        self._frame_view(view)
+
+    def _frame_view(self, view: Framing) -> None:
+        """Where clients that connect from now on start looking from."""
+        self.server.initial_camera.look_at = view.centre
+        self.server.initial_camera.position = view.eye
 
     def _frustum(self) -> dict[str, float]:
         fov_y = 2.0 * np.arctan2(self.camera.height / 2.0, self.camera.fy)
