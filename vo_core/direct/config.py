@@ -138,11 +138,6 @@ class InitializerConfig:
 class DirectConfig:
     initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
-    # Ours, an experiment until the window optimization (issue 4) exists: at each keyframe, re-optimize every
-    # active point's inverse depth against all keyframes of the window with the poses fixed. Off: with poses
-    # held fixed it made parking and KITTI worse (depths follow the drifting poses), teddy slightly better.
-    refine_window_depths: bool = False
-    refine_iterations: int = 3  # LM steps per keyframe, as setting_GNItsOnPointActivation (fewer drift on KITTI)
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     selector: SelectorConfig = field(default_factory=SelectorConfig)
     tracker: TrackerConfig = field(default_factory=TrackerConfig)

@@ -356,10 +356,8 @@ def optimize_inverse_depths(
     targets: list[ActivationTarget],
     config: ImmatureConfig,
     first_outlier_slack: float = 1.0,
-    iterations: int | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed;
-    ``iterations`` defaults to DSO's GN iterations on activation.
+    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed.
 
     Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
     ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
@@ -375,7 +373,7 @@ def optimize_inverse_depths(
     usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
     lam = np.full(n, 0.1)
     running = usable.copy()
-    for _ in range(config.activation_gn_iterations if iterations is None else iterations):
+    for _ in range(config.activation_gn_iterations):
         if not np.any(running):
             break
         with np.errstate(divide="ignore", invalid="ignore"):

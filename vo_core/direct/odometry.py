@@ -30,13 +30,7 @@ from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_initializer import CoarseInitializer
 from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.immature_point import (
-    ActivationTarget,
-    ImmaturePoints,
-    PatternPoints,
-    optimize_for_activation,
-    optimize_inverse_depths,
-)
+from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
@@ -351,7 +345,6 @@ class DirectOdometry:
         )
         dropped = self._slide_window(keyframe)
         activated = self._activate_points(keyframe)
-        removed = self._refine_window_depths(keyframe) if self.config.refine_window_depths else 0
         self.keyframes.append(keyframe)
         selection = self.selector.select(pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
@@ -366,7 +359,6 @@ class DirectOdometry:
                     "window": [k.frame_index for k in self.keyframes],
                     "dropped": dropped,
                     "activated_points": activated,
-                    "removed_points": removed,
                     "reference_points": self.tracker.num_points,
                     "immature_points": len(keyframe.immature),
                     "rmse_before": result.rmse_before,
@@ -471,23 +463,6 @@ class DirectOdometry:
             outside[candidates[~inside]] = True
             keyframe.immature = immature.subset(~(remove | outside))
         return activated
-
-    def _refine_window_depths(self, new_keyframe: Keyframe) -> int:
-        """Structure-only refinement: every active point's inverse depth against all other keyframes of the
-        window (poses fixed), so that depths agree with the whole window rather than with the frames that
-        traced them. Points that no keyframe observes as an inlier are removed. Returns how many."""
-        removed = 0
-        for keyframe in self.keyframes:
-            if len(keyframe.active_idepth) == 0:
-                continue
-            pattern, inside = PatternPoints.sample(keyframe.pyramid, keyframe.active_uv, self.config.immature)
-            idepth, usable = optimize_inverse_depths(
-                pattern, keyframe.active_idepth[inside], self._activation_targets(keyframe, new_keyframe),
-                self.config.immature, iterations=self.config.refine_iterations,
-            )
-            removed += len(inside) - int(usable.sum())
-            keyframe.active_uv, keyframe.active_idepth = pattern.uv[usable], idepth[usable]
-        return removed
 
     def _adapt_activation_distance(self) -> None:
         """activatePointsMT's currentMinActDist: closer spacing when the window lacks points, wider when full."""
