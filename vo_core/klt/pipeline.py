@@ -161,7 +161,7 @@ class KltOdometry:
         with self._stage("pnp"):
             estimate = estimate_pose(
                 self.camera, self.landmarks.positions[self.tracks.ids[is_landmark]], self.tracks.uv[is_landmark],
-                self.config.pose,
+                self.config.pose, T_predicted,
             )
         if estimate is None:
             return self._fail(frame, int(is_landmark.sum()))
