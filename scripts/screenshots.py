@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 SCREENSHOT = REPO / "scripts" / "screenshot.cjs"
 RUN_TIMEOUT_S = 600
 PAGE_WAIT_S = 10  # for the viser client to connect and draw
-VIEWER_WAIT_S = 30  # for the Rerun web viewer (software WebGL) to load the recording and draw its last frame
+VIEWER_WAIT_S = 45  # for the Rerun web viewer (software WebGL) to load the recording and draw its last frame
 
 
 def main() -> int:

@@ -106,6 +106,7 @@ class RerunSink:
         else:
             self.recording.save(str(path), default_blueprint=default_blueprint())
         self.recording.log("world", rr.ViewCoordinates.RDF, static=True)
+        self._scalars = _ScalarColumns()
         self._start_pass()
 
     def _start_pass(self) -> None:
@@ -117,13 +118,14 @@ class RerunSink:
         self._frustum_depth: float | None = None
         self._pending_markers: list[Event] = []
         self._markers: list[tuple[np.ndarray, Event]] = []
-        self._scalars = _ScalarColumns()
         self._clouds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the latest direct, feature
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         if self._last_index is not None and result.frame_index <= self._last_index:
+            # A restart: the new pass is logged over the old one on the same timelines (latest wins).
+            self._scalars.send(self.recording)
             self._start_pass()
         self._set_time(result.frame_index, result.timestamp)
         self._last_index, self._last_timestamp = result.frame_index, result.timestamp
