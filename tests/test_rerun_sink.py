@@ -121,6 +121,14 @@ def test_images_are_jpeg_on_every_frame(recording):
     assert np.abs(decoded.astype(int) - synthetic_image(FRAMES - 1)).mean() < 3.0
 
 
+def test_pinhole_frustum_holds_the_intrinsics(recording):
+    intrinsics = column(recording["/world/camera/image"], "Pinhole:image_from_camera")
+    intrinsics = [matrix for matrix in intrinsics if matrix is not None]
+    assert intrinsics  # logged with the first pose, again only when the scene's size changes a lot
+    # Rerun stores the 3x3 matrix column-major.
+    np.testing.assert_allclose(np.reshape(intrinsics[0], (3, 3)).T, CAMERA.K, atol=1e-4)
+
+
 def test_events_are_logged_with_levels(recording):
     texts = column(recording["/events"], "TextLog:text")
     levels = column(recording["/events"], "TextLog:level")

@@ -136,7 +136,8 @@ class RerunSink:
             self._log_image(frame.image, result.points_2d)
         self._place_markers(result.T_world_cam)
         self._add_scalars(result)
-        if self._log_path(force_full=result.is_keyframe):
+        if self._log_path(force_full=result.is_keyframe or self._frustum_depth is None):
+            self._size_frustum()
             self._scalars.send(self.recording)
 
     def on_event(self, event: Event) -> None:
@@ -185,15 +186,19 @@ class RerunSink:
 
     def _log_camera(self, T_world_cam: np.ndarray) -> None:
         self.recording.log(CAMERA, rr.Transform3D(translation=T_world_cam[:3, 3], mat3x3=T_world_cam[:3, :3]))
+
+    def _size_frustum(self) -> None:
+        """The pinhole, its image plane at a fraction of the scene's extent (checked with each whole path)."""
         depth = max(FRUSTUM_FRACTION * self.path.extent(), MIN_FRUSTUM_DEPTH)
-        if self._frustum_depth is None or not (
+        if self._frustum_depth is not None and (
             1.0 / FRUSTUM_RESIZE_FACTOR < depth / self._frustum_depth < FRUSTUM_RESIZE_FACTOR
         ):
-            self._frustum_depth = depth
-            self.recording.log(IMAGE, rr.Pinhole(
-                image_from_camera=self.camera.K, resolution=[self.camera.width, self.camera.height],
-                camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=depth, color=list(ESTIMATE_COLOR),
-            ))
+            return
+        self._frustum_depth = depth
+        self.recording.log(IMAGE, rr.Pinhole(
+            image_from_camera=self.camera.K, resolution=[self.camera.width, self.camera.height],
+            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=depth, color=list(ESTIMATE_COLOR),
+        ))
 
     def _log_image(self, image: np.ndarray, points_2d: np.ndarray | None) -> None:
         # OpenCV's encoder: the same JPEG as rr.Image(...).compress(), in half the time.
@@ -208,13 +213,12 @@ class RerunSink:
         True when the whole path was logged."""
         if len(self.path) == 0:
             return False
-        positions = self.path.positions()
         full = force_full or len(self.path) - self._full_path_length >= FULL_PATH_EVERY
         if full:
             self._full_path_length = len(self.path)
-            self._log_strip(ESTIMATE, positions, ESTIMATE_COLOR)
+            self._log_strip(ESTIMATE, self.path.positions(), ESTIMATE_COLOR)
             self._log_ground_truth()
-        self._log_strip(RECENT, positions[max(self._full_path_length - 1, 0):], ESTIMATE_COLOR)
+        self._log_strip(RECENT, self.path.positions(start=max(self._full_path_length - 1, 0)), ESTIMATE_COLOR)
         return full
 
     def _log_ground_truth(self) -> None:

@@ -140,9 +140,9 @@ class PathHistory:
         self.timestamps.append(float(timestamp))
         self.poses.append(np.asarray(T_world_cam, dtype=float))
 
-    def positions(self) -> np.ndarray:
-        """(N, 3) camera centres."""
-        return np.array([pose[:3, 3] for pose in self.poses]).reshape(-1, 3)
+    def positions(self, start: int = 0) -> np.ndarray:
+        """(N - start, 3) camera centres, from pose ``start`` on."""
+        return np.array([pose[:3, 3] for pose in self.poses[start:]]).reshape(-1, 3)
 
     def trajectory(self) -> Trajectory:
         return Trajectory(np.array(self.timestamps), np.array(self.poses).reshape(-1, 4, 4))
