@@ -177,3 +177,34 @@ def test_recording_carries_the_default_blueprint(tmp_path):
     assert blueprints and all(entry.application_id == "fdmo" for entry in blueprints)
     views = {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream(store=blueprints[-1]).to_chunks()}
     assert any(path.startswith("/view/") for path in views)  # the views of default_blueprint
+
+
+# ------------------------------------------------------------------------ the helpers both viewers share
+
+
+def test_path_history_keeps_every_position_past_its_first_buffer():
+    from app.sinks.scene import PathHistory
+
+    path = PathHistory()
+    for index in range(150):  # more than the first buffer holds
+        path.add(0.1 * index, camera_pose(index))
+    np.testing.assert_allclose(path.positions(), [camera_pose(i)[:3, 3] for i in range(150)])
+    np.testing.assert_allclose(path.positions(start=148), [camera_pose(i)[:3, 3] for i in (148, 149)])
+    assert len(path.trajectory()) == 150
+
+
+def test_inverse_depth_colors_run_from_blue_far_to_red_near():
+    from app.sinks.scene import inverse_depth_colors
+
+    colors = inverse_depth_colors(np.linspace(0.1, 2.0, 50)).astype(int)
+    assert colors.shape == (50, 3)
+    far, near = colors[0], colors[-1]
+    assert far[2] > far[0] and near[0] > near[2]
+
+
+def test_event_text_leaves_long_details_to_the_events_file():
+    from app.sinks.scene import event_text
+
+    event = Event(EventKind.INITIALIZATION_SUCCEEDED, 7, 0.7,
+                  {"points": 2000, "affine": [0.5, 8.25], "first_T_world_cam": np.eye(4).tolist(), "rmse": 1.23456})
+    assert event_text(event) == "frame 7 initialization_succeeded (points=2000, affine=[0.5, 8.25], rmse=1.235)"

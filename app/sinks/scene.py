@@ -127,22 +127,27 @@ def framing(*point_sets: np.ndarray | None) -> Framing | None:
 
 
 class PathHistory:
-    """The poses estimated so far, in the order they came (timestamps increase along a pass)."""
+    """The poses estimated so far, in the order they came (timestamps increase along a pass). The positions are
+    kept in a buffer that doubles when full, so that reading them costs a copy, not a loop over the poses."""
 
     def __init__(self) -> None:
         self.timestamps: list[float] = []
         self.poses: list[np.ndarray] = []
+        self._positions = np.empty((64, 3))
 
     def __len__(self) -> int:
         return len(self.poses)
 
     def add(self, timestamp: float, T_world_cam: np.ndarray) -> None:
+        if len(self.poses) == len(self._positions):
+            self._positions = np.concatenate([self._positions, np.empty_like(self._positions)])
+        self._positions[len(self.poses)] = T_world_cam[:3, 3]
         self.timestamps.append(float(timestamp))
         self.poses.append(np.asarray(T_world_cam, dtype=float))
 
     def positions(self, start: int = 0) -> np.ndarray:
-        """(N - start, 3) camera centres, from pose ``start`` on."""
-        return np.array([pose[:3, 3] for pose in self.poses[start:]]).reshape(-1, 3)
+        """(N - start, 3) camera centres, from pose ``start`` on (a copy)."""
+        return self._positions[start:len(self.poses)].copy()
 
     def trajectory(self) -> Trajectory:
         return Trajectory(np.array(self.timestamps), np.array(self.poses).reshape(-1, 4, 4))
