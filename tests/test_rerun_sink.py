@@ -208,3 +208,11 @@ def test_event_text_leaves_long_details_to_the_events_file():
     event = Event(EventKind.INITIALIZATION_SUCCEEDED, 7, 0.7,
                   {"points": 2000, "affine": [0.5, 8.25], "first_T_world_cam": np.eye(4).tolist(), "rmse": 1.23456})
     assert event_text(event) == "frame 7 initialization_succeeded (points=2000, affine=[0.5, 8.25], rmse=1.235)"
+
+
+def test_every_event_kind_has_a_style_and_failures_stand_out():
+    from app.sinks.scene import EVENT_STYLES
+
+    assert set(EVENT_STYLES) == set(EventKind)
+    assert {EVENT_STYLES[kind].level for kind in (EventKind.TRACKING_FAILED, EventKind.RECOVERY_FAILED)} == {"ERROR"}
+    assert EVENT_STYLES[EventKind.DIVERGENCE_DETECTED].level == "WARN"

@@ -36,7 +36,6 @@ import rerun.blueprint as rrb
 
 from app.sinks.scene import (
     ESTIMATE_COLOR,
-    EVENT_STYLES,
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
@@ -44,6 +43,7 @@ from app.sinks.scene import (
     Framing,
     GroundTruthOverlay,
     PathHistory,
+    event_style,
     event_text,
     framing,
     inverse_depth_colors,
@@ -142,7 +142,7 @@ class RerunSink:
 
     def on_event(self, event: Event) -> None:
         self._set_time(event.frame_index, event.timestamp)
-        style = EVENT_STYLES[event.kind]
+        style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
         if style.marked:
             self._pending_markers.append(event)  # placed at the pose of the frame tracked next (or the last one)
@@ -242,7 +242,7 @@ class RerunSink:
         self._pending_markers = []
         self.recording.log(EVENT_MARKERS, rr.Points3D(
             np.array([position for position, _ in self._markers]),
-            colors=[EVENT_STYLES[event.kind].color for _, event in self._markers],
+            colors=[event_style(event).color for _, event in self._markers],
             labels=[event.kind.value for _, event in self._markers],
             radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
         ))

@@ -67,6 +67,12 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.FRAME_SKIPPED: EventStyle("WARN", (160, 160, 160)),
     EventKind.FRAMES_DROPPED: EventStyle("INFO", (90, 90, 255)),
 }
+_UNLISTED = EventStyle("INFO", (120, 120, 120))
+
+
+def event_style(event: Event) -> EventStyle:
+    """The style of an event's kind; a kind added to the core later is shown plainly rather than refused."""
+    return EVENT_STYLES.get(event.kind, _UNLISTED)
 
 
 def event_text(event: Event) -> str:

@@ -27,7 +27,6 @@ import viser.transforms as vtf
 from app.sinks.scene import (
     CURRENT_CAMERA_COLOR,
     ESTIMATE_COLOR,
-    EVENT_STYLES,
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
@@ -37,6 +36,7 @@ from app.sinks.scene import (
     GroundTruthOverlay,
     PathHistory,
     framing,
+    event_style,
     event_text,
     inverse_depth_colors,
 )
@@ -197,7 +197,7 @@ class ViserView:
         with self._state_lock:
             if event.kind is EventKind.FRAMES_DROPPED:
                 self._state.dropped += int(event.details.get("count", 0))
-            if EVENT_STYLES[event.kind].marked:
+            if event_style(event).marked:
                 self._state.events.appendleft(event)
             self._frame_version += 1
 
@@ -446,4 +446,4 @@ def _overlay(image: np.ndarray, points_2d: np.ndarray | None) -> np.ndarray:
 def _event_markdown(events: list[Event]) -> str:
     if not events:
         return "no events yet"
-    return "\n".join(f"- {EVENT_STYLES[event.kind].level}: {event_text(event)}" for event in events)
+    return "\n".join(f"- {event_style(event).level}: {event_text(event)}" for event in events)
