@@ -67,7 +67,8 @@ def run_synthetic(sink: RerunSink) -> None:
         if result.is_keyframe:
             sink.on_map(MapSnapshot(
                 direct_points_world=rng.normal(size=(50, 3)), direct_inverse_depths=rng.uniform(0.2, 2.0, 50),
-                feature_points_world=rng.normal(size=(20, 3)), keyframe_poses={k: camera_pose(k) for k in KEYFRAMES if k <= i},
+                feature_points_world=rng.normal(size=(20, 3)),
+                keyframe_poses={k: camera_pose(k) for k in KEYFRAMES if k <= i},
             ))
     sink.on_event(Event(EventKind.FRAMES_DROPPED, FRAMES, FRAMES * PERIOD_S, {"count": 3}))
     sink.close()

@@ -24,6 +24,7 @@ from vo_core.trajectory import Trajectory  # noqa: E402
 
 CAMERA = PinholeCamera(width=80, height=60, fx=70.0, fy=70.0, cx=39.5, cy=29.5)
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMIUM_TRIES = 4
 
 
 class FakePlayer:
@@ -188,11 +189,11 @@ def test_page_is_served_over_http(fake_view):
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
 def test_headless_chromium_renders_the_controls(fake_view):
-    """The page's script runs, connects back over the websocket and builds the panel. The controls arrive over
-    the websocket in real time, so a busy machine gets a second, longer try."""
+    """The page's script runs, connects back over the websocket and builds the panel. The panel arrives over the
+    websocket in real time, which headless Chromium's virtual time does not wait for: a few tries."""
     view, _ = fake_view
-    for budget_ms in (8000, 30000):
-        dom = dump_dom(view.url, budget_ms)
+    for _ in range(CHROMIUM_TRIES):
+        dom = dump_dom(view.url, budget_ms=8000)
         if "Drop frames" in dom:
             break
     assert "Drop frames" in dom and "Frames to drop" in dom and "FDMO" in dom

@@ -147,6 +147,7 @@ class ViserView:
         # Versions count changes across restarts, so a fresh pass is never mistaken for one already drawn.
         self._frame_version = self._map_version = 0
         self._drawn_frame_version = self._drawn_map_version = 0
+        self._drawn_player: tuple[bool, bool] | None = None  # (paused, finished) when last drawn
         self._cleared = False
         self._nodes: dict[str, tuple[str, Any]] = {}  # scene node name -> (layer, handle)
         self._scene_size = MIN_SCENE_SIZE
@@ -285,12 +286,17 @@ class ViserView:
 
     def refresh(self) -> None:
         """Draw what changed since the last refresh (called by the refresher thread; safe from any thread)."""
+        player_state = (self.player.paused, getattr(self.player, "finished", False))
         with self._scene_lock:
             with self._state_lock:
-                frame_changed = self._frame_version != self._drawn_frame_version
+                # A pause, a step or the end of the sequence changes the status line without a new frame.
+                frame_changed = self._frame_version != self._drawn_frame_version or player_state != self._drawn_player
                 map_changed = self._map_version != self._drawn_map_version
                 cleared, self._cleared = self._cleared, False
+                if not (frame_changed or map_changed or cleared):
+                    return
                 self._drawn_frame_version, self._drawn_map_version = self._frame_version, self._map_version
+                self._drawn_player = player_state
                 drawing = self._copy_for_drawing(with_trajectory=map_changed)
             if cleared:
                 self._clear_scene()
