@@ -121,6 +121,19 @@ def test_play_button_shows_the_player_state(fake_view):
     assert (player.paused, view.play_pause.label) == (False, "Pause")
 
 
+def test_status_follows_the_player_without_a_new_frame(fake_view):
+    view, player = fake_view
+    feed(view, 0)
+    view.refresh()
+    assert view.status.content.startswith("**tracking** at frame 0")
+    player.paused = True
+    view.refresh()
+    assert view.status.content.startswith("**tracking, paused**")
+    player.finished = True
+    view.refresh()
+    assert view.status.content.startswith("**tracking, sequence finished**")
+
+
 def test_drop_button_makes_the_player_skip_frames():
     """Frames dropped from the page never reach the sinks: the next frame after the click is 3 frames later."""
     player = Player([frame(i) for i in range(12)])
