@@ -14,6 +14,7 @@ import argparse
 import json
 import os
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
@@ -66,16 +67,19 @@ class running:
 
     def __enter__(self) -> subprocess.Popen:
         self.output = open(self.log, "w")
-        self.process = subprocess.Popen(self.command, cwd=self.cwd, stdout=self.output, stderr=subprocess.STDOUT)
+        # A session of its own: the `rerun` command is a wrapper that starts the viewer as its child, and the
+        # whole group must end with the block.
+        self.process = subprocess.Popen(self.command, cwd=self.cwd, stdout=self.output, stderr=subprocess.STDOUT,
+                                        start_new_session=True)
         self.process.log = self.log
         return self.process
 
     def __exit__(self, *exc) -> None:
-        self.process.terminate()
+        os.killpg(self.process.pid, signal.SIGTERM)
         try:
             self.process.wait(timeout=10)
         except subprocess.TimeoutExpired:
-            self.process.kill()
+            os.killpg(self.process.pid, signal.SIGKILL)
         self.output.close()
 
 
