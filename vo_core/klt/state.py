@@ -14,34 +14,46 @@ from dataclasses import dataclass
 
 import numpy as np
 
+INITIAL_CAPACITY = 4096  # point ids before the first growth
+
 
 class Landmarks:
     """World positions indexed by point id; ids are handed out for candidates too and become landmarks when
-    a position is set."""
+    a position is set. Storage grows by doubling, so handing out ids stays cheap on long sequences."""
 
     def __init__(self) -> None:
-        self.positions = np.zeros((0, 3))
-        self.alive = np.zeros(0, bool)
+        self.count = 0
+        self._positions = np.zeros((INITIAL_CAPACITY, 3))
+        self._alive = np.zeros(INITIAL_CAPACITY, bool)
 
     def new_ids(self, count: int) -> np.ndarray:
-        first = len(self.positions)
-        self.positions = np.vstack([self.positions, np.zeros((count, 3))])
-        self.alive = np.concatenate([self.alive, np.zeros(count, bool)])
-        return np.arange(first, first + count)
+        needed = self.count + count
+        if needed > len(self._positions):
+            capacity = max(needed, 2 * len(self._positions))
+            self._positions = np.vstack([self._positions, np.zeros((capacity - len(self._positions), 3))])
+            self._alive = np.concatenate([self._alive, np.zeros(capacity - len(self._alive), bool)])
+        ids = np.arange(self.count, needed)
+        self.count = needed
+        return ids
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(count, 3), indexed by id; rows of candidates are meaningless."""
+        return self._positions[: self.count]
 
     def set(self, ids: np.ndarray, positions: np.ndarray) -> None:
-        self.positions[ids] = positions
-        self.alive[ids] = True
+        self._positions[ids] = positions
+        self._alive[ids] = True
 
     def cull(self, ids: np.ndarray) -> None:
-        self.alive[ids] = False
+        self._alive[ids] = False
 
     def is_landmark(self, ids: np.ndarray) -> np.ndarray:
-        return self.alive[ids]
+        return self._alive[ids]
 
     @property
     def world_points(self) -> np.ndarray:
-        return self.positions[self.alive]
+        return self._positions[: self.count][self._alive[: self.count]]
 
 
 @dataclass
