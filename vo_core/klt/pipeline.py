@@ -52,7 +52,7 @@ class KltOdometry:
         self.previous_image: np.ndarray | None = None
         self.T_world_last: np.ndarray | None = None  # pose of the last tracked frame
         self.last_tracked_index = -1
-        self.velocity = np.eye(4)  # T_last_current of the last step, for the constant-velocity prediction
+        self.velocity = np.eye(4)  # T_last_next per frame, for the constant-velocity prediction
         self.recent_steps: deque[float] = deque(maxlen=RECENT_SPEED_FRAMES)
         self._events: list[Event] = []
         self._timings: dict[str, float] = {}
@@ -120,8 +120,7 @@ class KltOdometry:
         if self.T_world_last is None:
             T_world_first, scale = np.eye(4), 1.0
         else:
-            frames_since_lost = bootstrap.first_frame_index - self.last_tracked_index
-            T_world_first = self.T_world_last @ se3_exp(frames_since_lost * se3_log(self.velocity))
+            T_world_first = self._predicted_pose(bootstrap.first_frame_index)
             scale = (np.median(self.recent_steps) if self.recent_steps else 1.0) * gap
         T_first_second = bootstrap.T_first_second.copy()
         T_first_second[:3, 3] *= scale
@@ -143,14 +142,13 @@ class KltOdometry:
             np.full(len(ids), bootstrap.first_frame_index), bootstrap.uv_second.astype(np.float32),
         )
         # The motion of the bootstrap, spread evenly over its frames, starts the motion model.
-        step = se3_exp(se3_log(T_first_second) / gap)
-        self._moved_to(bootstrap.second_frame_index, T_world_second, step)
+        self._moved_to(bootstrap.second_frame_index, T_world_second, T_first_second, gap)
         return T_world_second
 
     # ------------------------------------------------------------------------------------------- tracking
 
     def _track(self, frame) -> FrameResult:
-        T_predicted = self.T_world_last @ self.velocity
+        T_predicted = self._predicted_pose(frame.index)
         with self._stage("klt"):
             uv, valid = self.tracker.track(
                 self.previous_image, frame.image, self.tracks.uv, self._predicted_uv(T_predicted)
@@ -169,7 +167,8 @@ class KltOdometry:
         keep[np.flatnonzero(is_landmark)[~estimate.inliers]] = False
         self.tracks = self.tracks.select(keep)
         T_world_cam = estimate.T_world_cam
-        self._moved_to(frame.index, T_world_cam, se3_inverse(self.T_world_last) @ T_world_cam)
+        frames = frame.index - self.last_tracked_index
+        self._moved_to(frame.index, T_world_cam, se3_inverse(self.T_world_last) @ T_world_cam, frames)
 
         is_keyframe = self._wants_keyframe(frame.index, T_world_cam)
         if is_keyframe:
@@ -194,8 +193,16 @@ class KltOdometry:
             predicted[rows] = projected[usable]
         return predicted.astype(np.float32)
 
-    def _moved_to(self, frame_index: int, T_world_cam: np.ndarray, step: np.ndarray) -> None:
-        """Update the constant-velocity motion model and the recent speed with the newest pose."""
+    def _predicted_pose(self, frame_index: int) -> np.ndarray:
+        """Constant velocity from the last tracked frame, over as many frames as have passed (frames the
+        player dropped included)."""
+        frames = frame_index - self.last_tracked_index
+        return self.T_world_last @ se3_exp(frames * se3_log(self.velocity))
+
+    def _moved_to(self, frame_index: int, T_world_cam: np.ndarray, motion: np.ndarray, frames: int) -> None:
+        """Update the motion model and the recent speed with the newest pose, reached by ``motion``
+        (T_last_new) over ``frames`` frames."""
+        step = se3_exp(se3_log(motion) / frames) if frames > 1 else motion
         self.last_tracked_index = frame_index
         self.T_world_last = T_world_cam
         self.velocity = step
