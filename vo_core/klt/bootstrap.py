@@ -102,7 +102,6 @@ class Bootstrap:
     """A successful bootstrap, in the frame of its first view."""
 
     first_frame_index: int
-    first_image: np.ndarray
     second_frame_index: int
     T_first_second: np.ndarray  # unit baseline
     uv_first: np.ndarray  # (N, 2) every track that survived, in the first view
@@ -126,7 +125,6 @@ class Bootstrapper:
         self.adjustment = adjustment
         self.tracker = tracker
         self.first_index = -1
-        self.first_image: np.ndarray | None = None
         self.previous_image: np.ndarray | None = None
         self.uv_first = np.empty((0, 2), np.float32)
         self.uv_current = np.empty((0, 2), np.float32)
@@ -135,7 +133,7 @@ class Bootstrapper:
     def start(self, frame_index: int, image: np.ndarray) -> None:
         """Make ``image`` the first view: detect its corners."""
         self.first_index = frame_index
-        self.first_image = self.previous_image = image
+        self.previous_image = image
         self.uv_first = detect_corners(image, self.corners, np.empty((0, 2)), self.corners.max_corners)
         self.uv_current = self.uv_first.copy()
 
@@ -160,7 +158,7 @@ class Bootstrapper:
         if problem:
             return None
         return Bootstrap(
-            self.first_index, self.first_image, frame_index, geometry.T_first_second,
+            self.first_index, frame_index, geometry.T_first_second,
             self.uv_first[geometry.inliers], self.uv_current[geometry.inliers],
             geometry.points_first[geometry.inliers], geometry.triangulated[geometry.inliers],
             geometry.median_parallax_deg,
