@@ -287,7 +287,13 @@ class KltOdometry:
         config = self.config.ba
         if len(self.keyframes) <= config.fixed_keyframes:
             return
-        problem, point_ids = self._window_problem()
+        pose_index, ids, uv = self._window_observations()
+        behind = self._behind_a_keyframe(pose_index, ids)
+        if len(behind):
+            self._cull(behind, reason="behind a keyframe that observes it")
+            keep = ~np.isin(ids, behind)
+            pose_index, ids, uv = pose_index[keep], ids[keep], uv[keep]
+        problem, point_ids = self._window_problem(pose_index, ids, uv)
         if len(point_ids) == 0:
             return
         solution = adjust_window(self.camera, problem, config)
@@ -295,22 +301,32 @@ class KltOdometry:
             keyframe.T_world_cam = T
             self.keyframe_poses[keyframe.frame_index] = T
         self.landmarks.set(point_ids, solution.points_world)
-        bad = np.unique(problem.observation_point[solution.errors_after > config.max_outlier_px])
-        self.landmarks.cull(point_ids[bad])
-        self.tracks = self.tracks.select(~np.isin(self.tracks.ids, point_ids[bad]))
         self._emit(EventKind.WINDOW_OPTIMIZED, keyframes=len(self.keyframes), landmarks=len(point_ids),
                    rms_before_px=_rms(solution.errors_before), rms_after_px=_rms(solution.errors_after))
+        bad = np.unique(problem.observation_point[solution.errors_after > config.max_outlier_px])
         if len(bad):
-            self._emit(EventKind.MAP_POINTS_CULLED, count=len(bad), reason="reprojection error after adjustment")
+            self._cull(point_ids[bad], reason="reprojection error after adjustment")
 
-    def _window_problem(self) -> tuple[WindowProblem, np.ndarray]:
-        """The window's observations of landmarks seen by at least two of its keyframes."""
+    def _window_observations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keyframe index in the window, point id, pixel) of every landmark observation in the window."""
         pose_index = np.concatenate([np.full(len(k.ids), i) for i, k in enumerate(self.keyframes)])
         ids = np.concatenate([k.ids for k in self.keyframes])
         uv = np.concatenate([k.uv for k in self.keyframes]).astype(np.float64)
         alive = self.landmarks.is_landmark(ids)
-        pose_index, ids, uv = pose_index[alive], ids[alive], uv[alive]
-        point_ids, point_index, counts = np.unique(ids, return_inverse=True, return_counts=True)
+        return pose_index[alive], ids[alive], uv[alive]
+
+    def _behind_a_keyframe(self, pose_index: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Ids of landmarks behind a keyframe that saw them (as candidates, before they were triangulated):
+        wrong, and a projection the adjustment cannot differentiate."""
+        poses = np.stack([se3_inverse(k.T_world_cam) for k in self.keyframes])[pose_index]
+        depth = np.einsum("nj,nj->n", poses[:, 2, :3], self.landmarks.positions[ids]) + poses[:, 2, 3]
+        return np.unique(ids[depth <= self.config.triangulation.min_depth])
+
+    def _window_problem(
+        self, pose_index: np.ndarray, ids: np.ndarray, uv: np.ndarray
+    ) -> tuple[WindowProblem, np.ndarray]:
+        """The problem over the observations of landmarks seen by at least two keyframes of the window."""
+        _, point_index, counts = np.unique(ids, return_inverse=True, return_counts=True)
         seen_twice = counts[point_index] >= 2
         point_ids, point_index = np.unique(ids[seen_twice], return_inverse=True)
         fixed = np.arange(len(self.keyframes)) < self.config.ba.fixed_keyframes
@@ -319,6 +335,12 @@ class KltOdometry:
             pose_index[seen_twice], point_index, uv[seen_twice],
         )
         return problem, point_ids
+
+    def _cull(self, ids: np.ndarray, reason: str) -> None:
+        """Remove landmarks from the map and stop tracking them."""
+        self.landmarks.cull(ids)
+        self.tracks = self.tracks.select(~np.isin(self.tracks.ids, ids))
+        self._emit(EventKind.MAP_POINTS_CULLED, count=len(ids), reason=reason)
 
     def _detect_new_corners(self, image: np.ndarray, keyframe: Keyframe) -> None:
         """Top the tracks up to the corner budget with corners away from the tracked ones; they are observed
