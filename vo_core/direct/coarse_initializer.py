@@ -90,10 +90,15 @@ class CoarseInitializer:
         self.first_exposure: float | None = None
         self.levels: list[_LevelState] = []
         self.frames_tracked = 0
+        self.max_frames = config.max_frames
 
     @property
     def started(self) -> bool:
         return self.first is not None
+
+    def status(self) -> dict:
+        """For the events: how far the latest attempt got."""
+        return {"frames_tracked": self.frames_tracked}
 
     # ----------------------------------------------------------------------------------- first frame
 

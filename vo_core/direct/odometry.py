@@ -27,7 +27,6 @@ import cv2
 import numpy as np
 
 from vo_core.direct.affine import relative_affine
-from vo_core.direct.coarse_initializer import CoarseInitializer
 from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
@@ -39,9 +38,10 @@ from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.init.base import Initializer
+from vo_core.init.registry import INITIALIZERS, make_initializer
 from vo_core.init.result import InitializationResult
 
-INITIALIZERS = ("coarse",)
 INITIAL_LAST_RMSE = 100.0  # FullSystem: lastCoarseRMSE.setConstant(100)
 # activatePointsMT: currentMinActDist (half-resolution pixels) starts at 2, stays in [0, 4], and moves by these
 # steps when the window holds fewer / more points than wanted (fractions of the desired density).
@@ -129,12 +129,8 @@ class DirectOdometry:
     def newest_keyframe(self) -> Keyframe | None:
         return self.keyframes[-1] if self.keyframes else None
 
-    def _make_initializer(self) -> CoarseInitializer:
-        c = self.config
-        return CoarseInitializer(
-            c.coarse_init, c.selector, c.tracker.huber_threshold, c.immature.outlier_threshold,
-            c.point_density, self.seed,
-        )
+    def _make_initializer(self) -> Initializer:
+        return make_initializer(self.config, self.init_config, self.camera, self.seed)
 
     # ------------------------------------------------------------------------------------ per frame
 
@@ -185,11 +181,10 @@ class DirectOdometry:
         self.initializer_frames += 1
         result.timings_ms["initializer"] = _ms_since(start)
         if outcome is None:
-            if self.initializer_frames >= self.config.coarse_init.max_frames:
+            if self.initializer_frames >= self.initializer.max_frames:
                 # Too long without enough baseline or texture: start over from this frame.
-                result.events.append(
-                    _event(EventKind.INITIALIZATION_FAILED, frame, {"frames": self.initializer_frames})
-                )
+                details = {**self.initializer.status(), "frames": self.initializer_frames}
+                result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
                 self.initializer = self._make_initializer()
                 self._initialize(frame, pyramid, result)
             return
