@@ -186,6 +186,11 @@ def _source(source: str | None) -> Path:
         return Path(source)
     from vo_core.datasets import DEFAULT_SEQUENCE
 
+    if not DEFAULT_SEQUENCE.is_dir():
+        raise InputError(
+            f"{DEFAULT_SEQUENCE}: the bundled sequence lives in the repository's assets/; "
+            "install from a clone with `pip install -e .`, or give a SOURCE"
+        )
     return Path(DEFAULT_SEQUENCE)
 
 
