@@ -109,6 +109,9 @@ def test_frame_results_carry_points_timings_and_map(smooth):
     assert all(r.num_inliers >= KltConfig().pose.min_inliers for r in tracked)
     assert all(len(r.points_2d) >= r.num_inliers * 0.9 and sequence.camera.in_image(r.points_2d).all()
                for r in tracked)
+    # Each landmark's match line ends where it is tracked in this frame and starts in the image.
+    assert all(np.array_equal(r.matches_2d[:, 2:], r.points_2d) and sequence.camera.in_image(r.matches_2d[:, :2]).all()
+               for r in tracked)
     assert all({"klt", "pnp", "total"} <= r.timings_ms.keys() for r in tracked[1:])
     assert all({"triangulate", "ba", "detect"} <= r.timings_ms.keys() for r in tracked[1:] if r.is_keyframe)
     snapshot = odometry.map_snapshot()

@@ -21,6 +21,7 @@ CAMERA = PinholeCamera(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59
 FRAMES = 12
 LOST_FRAME = 5  # no pose: tracking failed there
 KEYFRAMES = (0, 4, 8)
+MATCHES = 7  # feature matches drawn into each frame
 PERIOD_S = 0.05
 # The ground truth is the estimate under this similarity: once aligned it must fall back onto the estimate.
 S_GT_EST = sim3(2.5, so3_exp(np.array([0.1, -0.3, 0.2])), np.array([1.0, -2.0, 0.5]))
@@ -61,7 +62,8 @@ def run_synthetic(sink: RerunSink) -> None:
         result = FrameResult(
             i, timestamp, None if lost else camera_pose(i), tracked=not lost, is_keyframe=i in KEYFRAMES,
             rmse_before=None if lost else 8.0, rmse_after=None if lost else 6.0, num_inliers=40 + i,
-            points_2d=rng.uniform(0, 100, (30, 2)), timings_ms={"track": 1.5, "total": 2.0}, events=events,
+            points_2d=rng.uniform(0, 100, (30, 2)), matches_2d=rng.uniform(0, 100, (MATCHES, 4)),
+            timings_ms={"track": 1.5, "total": 2.0}, events=events,
         )
         sink.on_frame(SimpleNamespace(index=i, timestamp=timestamp, image=synthetic_image(i)), result)
         if result.is_keyframe:
@@ -96,8 +98,8 @@ def column(chunks: list, name: str) -> list:
 
 
 def test_entities_are_the_documented_ones(recording):
-    expected = {sink_module.CAMERA, sink_module.IMAGE, sink_module.TRACKED_PIXELS, sink_module.ESTIMATE,
-                sink_module.RECENT, sink_module.GROUND_TRUTH, sink_module.DIRECT_POINTS, sink_module.FEATURE_POINTS,
+    expected = {sink_module.CAMERA, sink_module.IMAGE, sink_module.TRACKED_PIXELS, sink_module.MATCHES,
+                sink_module.ESTIMATE, sink_module.RECENT, sink_module.GROUND_TRUTH, sink_module.DIRECT_POINTS, sink_module.FEATURE_POINTS,
                 sink_module.KEYFRAMES, sink_module.EVENT_MARKERS, sink_module.EVENT_LOG,
                 "plots/tracking/rmse_ratio", "plots/counts/inliers", "plots/timing_ms/track"}
     assert {"/" + entity for entity in expected} <= set(recording)
@@ -217,3 +219,9 @@ def test_every_event_kind_has_a_style_and_failures_stand_out():
     assert set(EVENT_STYLES) == set(EventKind)
     assert {EVENT_STYLES[kind].level for kind in (EventKind.TRACKING_FAILED, EventKind.RECOVERY_FAILED)} == {"ERROR"}
     assert EVENT_STYLES[EventKind.DIVERGENCE_DETECTED].level == "WARN"
+
+
+def test_matches_are_line_segments_on_every_frame(recording):
+    strips = [rows for rows in column(recording["/world/camera/image/matches"], "LineStrips2D:strips") if rows]
+    assert len(strips) == FRAMES
+    assert all(len(rows) == MATCHES and all(len(strip) == 2 for strip in rows) for rows in strips)

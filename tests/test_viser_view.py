@@ -18,6 +18,7 @@ pytest.importorskip("viser")
 
 from app.player import Player  # noqa: E402
 from app.sinks.viser_view import ViserView  # noqa: E402
+from app.sinks.scene import MATCH_COLOR  # noqa: E402
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot  # noqa: E402
 from vo_core.geometry.camera import PinholeCamera  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
@@ -85,7 +86,8 @@ def feed(view: ViserView, index: int) -> None:
     """What the odometry sends for one tracked frame (a keyframe every fourth)."""
     keyframe = index % 4 == 0
     view.on_frame(frame(index), FrameResult(index, 0.1 * index, pose(index), True, is_keyframe=keyframe,
-                                            points_2d=np.array([[10.0, 10.0], [40.0, 30.0]])))
+                                            points_2d=np.array([[10.0, 10.0], [40.0, 30.0]]),
+                                            matches_2d=np.array([[20.0, 50.0, 60.0, 50.0]])))
     if keyframe:
         rng = np.random.default_rng(index)
         view.on_map(MapSnapshot(rng.normal(size=(40, 3)), rng.uniform(0.2, 2.0, 40), rng.normal(size=(10, 3)),
@@ -167,6 +169,7 @@ def test_scene_layers_and_restart(fake_view):
     assert nodes["/trajectory"].points.shape == (8, 2, 3)
     assert "ERROR: frame 8 tracking_failed" in view.event_log.content
     assert view.image.image[10, 10].tolist() == [60, 230, 60]  # a tracked pixel is painted
+    assert view.image.image[50, 40].tolist() == list(MATCH_COLOR)  # on the match line from (20, 50) to (60, 50)
 
     view.layers["direct cloud"].value = False
     assert not nodes["/map/direct"].visible and nodes["/map/features"].visible

@@ -63,6 +63,8 @@ class FrameResult:
     optimization (FDMO's divergence test), None for methods without them.
     ``timings_ms`` maps a stage name to milliseconds spent on it for this frame.
     ``points_2d`` are the pixels the method tracked in this frame (selected direct points or features).
+    ``matches_2d`` are feature matches drawn as lines: rows (u_from, v_from, u_to, v_to), from the pixel in the
+    image they were matched to (a keyframe, the previous frame) to the pixel in this frame.
     """
 
     frame_index: int
@@ -74,6 +76,7 @@ class FrameResult:
     rmse_after: float | None = None
     num_inliers: int | None = None
     points_2d: np.ndarray | None = None
+    matches_2d: np.ndarray | None = None  # (K, 4)
     timings_ms: dict[str, float] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
 

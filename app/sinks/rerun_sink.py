@@ -9,6 +9,7 @@ Entities (the 3D world is the estimate's: the first camera's frame, x right, y d
     world/camera                    T_world_cam of each posed frame
     world/camera/image              pinhole (the frustum), the input image (JPEG) and
     world/camera/image/tracked      the pixels the method tracked (FrameResult.points_2d)
+    world/camera/image/matches      feature matches as lines into this frame (FrameResult.matches_2d)
     world/trajectory/estimate       the estimated path (LineStrips3D), relogged whole at keyframes ...
     world/trajectory/recent         ... and the frames since then, so that each frame logs a few points only
     world/trajectory/ground_truth   the ground truth, Sim(3)-aligned to the estimate, refitted at keyframes
@@ -39,6 +40,7 @@ from app.sinks.scene import (
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
+    MATCH_COLOR,
     OVERLAY_POINT_COLOR,
     Framing,
     GroundTruthOverlay,
@@ -58,6 +60,7 @@ TIME_TIMELINE = "time"
 CAMERA = "world/camera"
 IMAGE = "world/camera/image"
 TRACKED_PIXELS = "world/camera/image/tracked"
+MATCHES = "world/camera/image/matches"
 ESTIMATE = "world/trajectory/estimate"
 RECENT = "world/trajectory/recent"
 GROUND_TRUTH = "world/trajectory/ground_truth"
@@ -133,7 +136,7 @@ class RerunSink:
             self.path.add(result.timestamp, result.T_world_cam)
             self._log_camera(result.T_world_cam)
         if frame is not None and getattr(frame, "image", None) is not None:
-            self._log_image(frame.image, result.points_2d)
+            self._log_image(frame.image, result.points_2d, result.matches_2d)
         self._place_markers(result.T_world_cam)
         self._add_scalars(result)
         if self._log_path(force_full=result.is_keyframe or self._frustum_depth is None):
@@ -200,13 +203,15 @@ class RerunSink:
             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=depth, color=list(ESTIMATE_COLOR),
         ))
 
-    def _log_image(self, image: np.ndarray, points_2d: np.ndarray | None) -> None:
+    def _log_image(self, image: np.ndarray, points_2d: np.ndarray | None, matches_2d: np.ndarray | None) -> None:
         # OpenCV's encoder: the same JPEG as rr.Image(...).compress(), in half the time.
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         if ok:
             self.recording.log(IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
         tracked = np.zeros((0, 2)) if points_2d is None else np.asarray(points_2d).reshape(-1, 2)
         self.recording.log(TRACKED_PIXELS, rr.Points2D(tracked, colors=OVERLAY_POINT_COLOR, radii=1.5))
+        segments = np.zeros((0, 2, 2)) if matches_2d is None else np.asarray(matches_2d).reshape(-1, 2, 2)
+        self.recording.log(MATCHES, rr.LineStrips2D(segments, colors=MATCH_COLOR, radii=0.5))
 
     def _log_path(self, force_full: bool) -> bool:
         """The whole path at keyframes (and every FULL_PATH_EVERY frames), only its recent tail otherwise;

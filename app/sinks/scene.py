@@ -29,6 +29,7 @@ FEATURE_POINT_COLOR = (250, 170, 20)
 KEYFRAME_COLOR = (70, 110, 230)
 CURRENT_CAMERA_COLOR = (230, 40, 40)
 OVERLAY_POINT_COLOR = (60, 230, 60)
+MATCH_COLOR = (250, 170, 20)  # feature matches, in the feature map's color
 
 # The inverse depths between these percentiles span the colormap; outliers take its end colors, so one
 # point very close to the camera does not wash the rest of the cloud into a single color.

@@ -30,6 +30,7 @@ from app.sinks.scene import (
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
+    MATCH_COLOR,
     OVERLAY_POINT_COLOR,
     MIN_SCENE_SIZE,
     Framing,
@@ -87,6 +88,7 @@ class _LiveState:
     frame_index: int | None = None
     image: np.ndarray | None = None
     points_2d: np.ndarray | None = None
+    matches_2d: np.ndarray | None = None
     T_world_cam: np.ndarray | None = None
     tracked: bool = False
     processed: int = 0
@@ -112,6 +114,7 @@ class _Drawing:
     trajectory: Trajectory | None
     image: np.ndarray | None
     points_2d: np.ndarray | None
+    matches_2d: np.ndarray | None
     T_world_cam: np.ndarray | None
     thumbnails: dict[int, np.ndarray]
     keyframe_poses: dict[int, np.ndarray]
@@ -180,6 +183,7 @@ class ViserView:
             state.frame_index = result.frame_index
             state.image = getattr(frame, "image", None)
             state.points_2d = result.points_2d
+            state.matches_2d = result.matches_2d
             state.T_world_cam = result.T_world_cam
             state.tracked = result.tracked
             state.processed += 1
@@ -310,7 +314,7 @@ class ViserView:
         return _Drawing(
             path=state.path.positions(),
             trajectory=state.path.trajectory() if with_trajectory and self.ground_truth is not None else None,
-            image=state.image, points_2d=state.points_2d, T_world_cam=state.T_world_cam,
+            image=state.image, points_2d=state.points_2d, matches_2d=state.matches_2d, T_world_cam=state.T_world_cam,
             thumbnails=dict(state.thumbnails), keyframe_poses=dict(state.keyframe_poses),
             direct_points=state.direct_points, direct_colors=state.direct_colors,
             feature_points=state.feature_points, status=self._status_text(state), events=list(state.events),
@@ -336,7 +340,7 @@ class ViserView:
         self.event_log.content = _event_markdown(drawing.events)
         self._show_play_state()
         if drawing.image is not None:
-            self.image.image = _overlay(drawing.image, drawing.points_2d)
+            self.image.image = _overlay(drawing.image, drawing.points_2d, drawing.matches_2d)
         if len(drawing.path) >= 2:
             self._add("trajectory", "/trajectory", scene.add_line_segments, points=_segments(drawing.path),
                       colors=ESTIMATE_COLOR, thickness=LINE_THICKNESS_PX, thickness_units="screen")
@@ -435,9 +439,13 @@ def _thumbnail(image: np.ndarray) -> np.ndarray:
     return _rgb(cv2.resize(image, (THUMBNAIL_WIDTH, height), interpolation=cv2.INTER_AREA))
 
 
-def _overlay(image: np.ndarray, points_2d: np.ndarray | None) -> np.ndarray:
-    """The image in RGB with the tracked pixels as 3x3 dots (painted in one vectorized write)."""
+def _overlay(image: np.ndarray, points_2d: np.ndarray | None, matches_2d: np.ndarray | None) -> np.ndarray:
+    """The image in RGB with the feature matches as lines and the tracked pixels as 3x3 dots over them (painted
+    in one vectorized write)."""
     rgb = _rgb(image).copy()
+    if matches_2d is not None and len(matches_2d):
+        segments = np.round(np.asarray(matches_2d, dtype=float).reshape(-1, 2, 2)).astype(np.int32)
+        cv2.polylines(rgb, list(segments), isClosed=False, color=MATCH_COLOR, thickness=1)
     if points_2d is None or len(points_2d) == 0:
         return rgb
     height, width = rgb.shape[:2]

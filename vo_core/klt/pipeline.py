@@ -357,9 +357,11 @@ class KltOdometry:
 
     def _pose_result(self, T_world_cam: np.ndarray, is_keyframe: bool, num_inliers: int) -> FrameResult:
         is_landmark = self.landmarks.is_landmark(self.tracks.ids)
+        uv = self.tracks.uv[is_landmark]
         return FrameResult(
             self._frame.index, self._frame.timestamp, T_world_cam.copy(), tracked=True, is_keyframe=is_keyframe,
-            num_inliers=num_inliers, points_2d=self.tracks.uv[is_landmark].copy(),
+            num_inliers=num_inliers, points_2d=uv.copy(),
+            matches_2d=np.hstack([self.tracks.keyframe_uv[is_landmark], uv]),  # landmark tracks since the keyframe
         )
 
     def _no_pose(self, points_2d: np.ndarray) -> FrameResult:
