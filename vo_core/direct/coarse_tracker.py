@@ -7,8 +7,8 @@ schedule and stopping rules, and an abort when a level ends worse than the best 
 
 Every reference point is DSO's 8-pixel pattern around a pixel of the reference keyframe, all pattern pixels
 warped with the point's inverse depth. On coarser levels, points falling into the same pixel are merged
-(their inverse depths averaged), as DSO's makeCoarseDepthL0 does. All points x pattern are warped at once;
-one cv2.remap samples intensity and gradient.
+(their inverse depths averaged), as DSO's makeCoarseDepthL0 does. The per-pixel loops (warp, bilinear lookup,
+Huber residual, normal equations) are compiled kernels (photometric_kernels.py).
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import numpy as np
 
 from vo_core.direct.affine import relative_affine
 from vo_core.direct.config import PATTERN_8, TrackerConfig
+from vo_core.direct.photometric_kernels import normal_equations, warp_residuals
 from vo_core.direct.pyramid import ImagePyramid, to_level
 from vo_core.geometry.lie import se3_exp
 
@@ -42,15 +43,10 @@ class _Residuals:
     energy: float
     num_terms: int
     saturated_ratio: float
-    # Buffers of the non-saturated terms for the normal equations (calcGSSSE).
-    u: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    v: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    gx: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    gy: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    residual: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    color: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # The non-saturated terms for the normal equations (calcGSSSE): the first ``count`` rows of
+    # photometric_kernels.warp_residuals' buffer.
+    terms: np.ndarray = field(default_factory=lambda: np.zeros((0, 8), np.float32))
+    count: int = 0
 
     @property
     def mean_energy(self) -> float:
@@ -162,46 +158,12 @@ class CoarseTracker:
         factor, offset = self._relative_affine(affine, exposure)
         if not (np.isfinite(factor) and np.isfinite(offset)):
             return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0)
-        R, t = T_frame_ref[:3, :3].astype(np.float32), T_frame_ref[:3, 3].astype(np.float32)
-        warped = points.rays @ R.T  # R x + t d is the warped point times its inverse depth d
-        warped += points.idepth[:, None] * t
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inverse_z = 1.0 / warped[:, 2]
-        u, v = warped[:, 0] * inverse_z, warped[:, 1] * inverse_z
-        Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
-        valid = (
-            (Ku > WARP_BORDER) & (Kv > WARP_BORDER) & (Ku < camera.width - 1 - WARP_BORDER)
-            & (Kv < camera.height - 1 - WARP_BORDER) & (inverse_z > 0)
+        terms, count, num_terms, saturated, energy = warp_residuals(
+            points.rays, points.idepth, points.color, T_frame_ref[:3, :3], T_frame_ref[:3, 3],
+            np.array([camera.fx, camera.fy, camera.cx, camera.cy]), WARP_BORDER, frame[level].packed,
+            float(factor), float(offset), float(config.huber_threshold), float(cutoff),
         )
-        index = np.flatnonzero(valid)
-        hit = frame[level].sample(Ku[index], Kv[index])
-        finite = np.isfinite(hit[:, 0])
-        if not finite.all():
-            index, hit = index[finite], hit[finite]
-        color = points.color[index]
-        with np.errstate(over="ignore", invalid="ignore"):  # a diverged affine guess gives inf: rejected later
-            residual = hit[:, 0] - (factor * color + offset)
-        weight = huber_weight(residual, config.huber_threshold)
-        good = np.abs(residual) <= cutoff
-        saturated = len(residual) - int(np.count_nonzero(good))
-        k = config.huber_threshold
-        max_energy = 2.0 * k * cutoff - k * k  # the energy of a residual at the cutoff
-        index, hit, residual, weight, color = index[good], hit[good], residual[good], weight[good], color[good]
-        energy = float(np.dot(weight * residual, residual * (2.0 - weight))) + max_energy * saturated
-        num_terms = int(len(good))
-        return _Residuals(
-            energy=energy,
-            num_terms=num_terms,
-            saturated_ratio=saturated / max(num_terms, 1),
-            u=u[index],
-            v=v[index],
-            idepth=points.idepth[index] * inverse_z[index],
-            gx=hit[:, 1],
-            gy=hit[:, 2],
-            residual=residual,
-            weight=weight,
-            color=color,
-        )
+        return _Residuals(energy, num_terms, saturated / max(num_terms, 1), terms, count)
 
     def _flow_indicators(self, camera, points: _LevelPoints, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """calcRes' keyframe indicators: mean squared pixel shift of every 32nd point under +-t and R, +-t."""
@@ -234,23 +196,9 @@ class CoarseTracker:
         """calcGSSSE: H and b of the 8 parameters (v, w, a, b), averaged per term and scaled as DSO."""
         camera = frame[level].camera
         factor, _ = self._relative_affine(affine, exposure)
-        dx, dy = res.gx * camera.fx, res.gy * camera.fy
-        u, v, d = res.u, res.v, res.idepth
-        J = np.empty((len(u), 8), dtype=np.float32)
-        J[:, 0] = d * dx
-        J[:, 1] = d * dy
-        J[:, 2] = -d * (u * dx + v * dy)
-        J[:, 3] = -(u * v * dx + dy * (1.0 + v * v))
-        J[:, 4] = u * v * dy + dx * (1.0 + u * u)
-        J[:, 5] = u * dy - v * dx
-        J[:, 6] = factor * (self.reference_affine[1] - res.color)
-        J[:, 7] = -1.0
-        weighted = J * res.weight[:, None]
-        n = max(len(u), 1)
+        H, b = normal_equations(res.terms, res.count, camera.fx, camera.fy, factor, self.reference_affine[1])
         scale = self._step_scale()
-        H = (weighted.T @ J).astype(float) / n * np.outer(scale, scale)
-        b = (weighted.T @ res.residual).astype(float) / n * scale
-        return H, b
+        return H * np.outer(scale, scale), b * scale
 
     def _step_scale(self) -> np.ndarray:
         c = self.config
@@ -331,7 +279,8 @@ class CoarseTracker:
                 break
             if lam < config.lambda_extrapolation_limit:
                 inc *= np.sqrt(np.sqrt(config.lambda_extrapolation_limit / lam))
-            step = inc * scale
+            with np.errstate(over="ignore", invalid="ignore"):  # a degenerate system: the step is dropped below
+                step = inc * scale
             if not np.all(np.isfinite(step)):
                 step = np.zeros(8)
             T_new = se3_exp(step[:6]) @ T

@@ -17,6 +17,7 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, huber_weight
+from vo_core.direct.photometric_kernels import epipolar_search
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
@@ -201,18 +202,11 @@ class ImmaturePoints:
         rotated = PATTERN @ KRKi[:2, :2].T  # (8, 2)
         random_shift = u_min * 1000.0 - np.floor(u_min * 1000.0)
         start_u, start_v = u_min - random_shift * dx, v_min - random_shift * dy
-        best_u, best_v = np.empty(len(index)), np.empty(len(index))
-        # Search lengths differ a lot (a first trace spans ~30 px, a converged one 2): points are searched in
-        # groups of similar length so that padding to the longest costs little.
-        group = np.ceil(np.log2(np.maximum(num_steps, 1))).astype(int)
-        for g in np.unique(group):
-            members = np.flatnonzero(group == g)
-            best_u[members], best_v[members], new_quality = self._discrete_search(
-                frame, index[members], start_u[members], start_v[members], dx[members], dy[members],
-                num_steps[members], rotated, affine, config,
-            )
-            update = (new_quality < self.quality[index[members]]) | (num_steps[members] > 10)
-            self.quality[index[members]] = np.where(update, new_quality, self.quality[index[members]])
+        best_u, best_v, new_quality = self._discrete_search(
+            frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config
+        )
+        update = (new_quality < self.quality[index]) | (num_steps > 10)
+        self.quality[index] = np.where(update, new_quality, self.quality[index])
 
         best_u, best_v, best_energy = self._refine(index, frame, best_u, best_v, dx, dy, rotated, affine, config)
         outlier = ~(best_energy < self.energy_threshold[index] * config.trace_extra_slack)
@@ -248,21 +242,12 @@ class ImmaturePoints:
 
     def _discrete_search(self, frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config):
         """Pattern energy at 1-px steps along the segment: the best step and the quality of the match."""
-        steps = np.arange(num_steps.max(), dtype=np.float32)
-        f32 = np.float32
-        u = start_u.astype(f32)[:, None] + steps[None] * dx.astype(f32)[:, None]
-        v = start_v.astype(f32)[:, None] + steps[None] * dy.astype(f32)[:, None]
-        energy, *_ = self._pattern_energy(frame, index, u, v, rotated.astype(f32), affine, config.huber_threshold)
-        energy = np.where(np.arange(len(steps))[None] < num_steps[:, None], energy, np.inf)
-        best_step = np.argmin(energy, axis=1)
-        rows = np.arange(len(index))
-        best_energy = energy[rows, best_step]
-        # Quality: the best energy outside +-2 steps over the best one (large = unambiguous match).
-        far = np.abs(np.arange(len(steps))[None] - best_step[:, None]) > config.min_trace_test_radius
-        second = np.min(np.where(far, energy, np.inf), axis=1)
-        second = np.where(np.isfinite(second), second, 1e10)  # DSO's secondBest starts at 1e10
-        quality = second.astype(float) / np.maximum(best_energy, 1e-12)
-        return u[rows, best_step].astype(float), v[rows, best_step].astype(float), quality
+        factor, offset = affine
+        return epipolar_search(
+            frame.intensity, start_u, start_v, dx, dy, num_steps.astype(np.int64), rotated, self.color[index],
+            float(factor), float(offset), float(config.huber_threshold), MISSING_ENERGY,
+            config.min_trace_test_radius,
+        )
 
     def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
         """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""
