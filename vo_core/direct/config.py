@@ -135,6 +135,21 @@ class InitializerConfig:
 
 
 @dataclass
+class WindowConfig:
+    """The windowed photometric bundle adjustment (FullSystem::optimize, EnergyFunctional; FDMO section 4)."""
+
+    enabled: bool = True
+    max_iterations: int = 6  # setting_maxOptIterations
+    initial_lambda: float = 1e-1  # FullSystem::optimize: lambda = 1e-1
+    lambda_decrease: float = 0.25  # an accepted step: lambda *= 0.25
+    lambda_increase: float = 100.0  # a rejected step: lambda *= 1e2
+    min_step: float = 1e-4  # stop when no keyframe parameter moves more than this (ours, like setting_thOptIterations)
+    border: float = 2.0  # residuals whose pattern comes this close to the image edge are out
+    min_inverse_depth: float = 1e-4  # inverse depths are kept positive (points at infinity are valid)
+    idepth_regularization: float = 1e-6  # keeps a point without residuals solvable (its step is then zero)
+
+
+@dataclass
 class DirectConfig:
     initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
@@ -144,3 +159,4 @@ class DirectConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     immature: ImmatureConfig = field(default_factory=ImmatureConfig)
     coarse_init: InitializerConfig = field(default_factory=InitializerConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)

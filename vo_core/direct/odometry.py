@@ -34,6 +34,7 @@ from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyfr
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid, to_level
+from vo_core.direct.window import WindowOptimizer
 from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
@@ -112,6 +113,10 @@ class DirectOdometry:
         self.seed = seed
         self.selector = PixelSelector(config.selector, seed)
         self.tracker = CoarseTracker(config.tracker)
+        self.window_optimizer = WindowOptimizer(
+            config.window, config.tracker.huber_threshold, config.immature.outlier_threshold,
+            config.immature.outlier_sum_component,
+        )
         self.initializer = self._make_initializer()
         self.state = _State.INITIALIZING
         self.keyframes: list[Keyframe] = []  # the window, oldest first
@@ -341,6 +346,8 @@ class DirectOdometry:
         dropped = self._slide_window(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
+        if self.config.window.enabled and len(self.keyframes) >= 2:
+            self._optimize_window(frame, result)
         selection = self.selector.select(pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
@@ -361,6 +368,18 @@ class DirectOdometry:
                 },
             )
         )
+
+    def _optimize_window(self, frame, result: FrameResult) -> None:
+        """FullSystem::optimize: the joint photometric bundle adjustment of the window; the frame that became
+        the newest keyframe takes its optimized pose (for the motion model and the trajectory)."""
+        report = self.window_optimizer.optimize(self.keyframes)
+        for keyframe in self.keyframes:
+            self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
+        newest = self.keyframes[-1]
+        self.history[-1] = _Tracked(newest.T_world_cam, newest.affine)
+        result.T_world_cam = newest.T_world_cam.copy()
+        result.timings_ms["window"] = report.ms
+        result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
 
     def _slide_window(self, new_keyframe: Keyframe) -> list[int]:
         """Drop the keyframes DSO would marginalize (their points leave the tracking reference)."""

@@ -183,3 +183,104 @@ def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, col
         best_v[i] = start_v[i] + best_step * dy[i]
         quality[i] = second / max(energies[best_step], 1e-12)
     return best_u, best_v, quality
+
+
+@numba.njit(cache=True, nogil=True)
+def pair_linearization(rays, idepth, color, host_weight, R, t, intrinsics, border, packed, factor, offset, host_b,
+                       huber, outlier_energy, weight_component, linearize):
+    """The photometric residuals of every point of one host keyframe in one target keyframe (DSO's
+    PointFrameResidual::linearize, all points at once).
+
+    Point i has pattern rays ``rays[i, k]`` (K^-1 (u, v, 1) in the host), inverse depth ``idepth[i]``, host
+    intensities ``color[i, k]`` and host pattern weights ``host_weight[i, k]``; (R, t) is T_target_host. The
+    target intensity is predicted as factor * color + offset = factor * (color - b_host) + b_target (affine.py),
+    ``host_b`` is b_host. A residual is out (no terms) when a pattern pixel leaves the image or
+    the point is behind the camera; it is an outlier (counted at ``outlier_energy``, no terms) when its energy
+    is larger. Weights: Huber times the squared mean of the host and the target gradient weights
+    w = sqrt(c / (c + |grad|^2)), c = ``weight_component``.
+
+    Returns (energy, status, M, m, C, Hdd, bd): status per point is 0 in, 1 out, 2 outlier; with
+    ``linearize``, M (9x9) and m (9) are sum w J^T J and sum w J^T r over the local parameters
+    [xi (6, left increment of T_target_host), a_target, b_target, b_host] (a_host enters as -a_target),
+    C (N, 9) the per-point coupling sum w J^T J_d, Hdd and bd the per-point sum w J_d^2 and sum w J_d r.
+    """
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    height, width = packed.shape[0], packed.shape[1]
+    n, pattern = color.shape
+    status = np.zeros(n, np.int8)
+    M = np.zeros((9, 9))
+    m = np.zeros(9)
+    C = np.zeros((n, 9))
+    Hdd = np.zeros(n)
+    bd = np.zeros(n)
+    residuals = np.empty(pattern)
+    weights = np.empty(pattern)
+    J = np.empty((pattern, 9))
+    Jd = np.empty(pattern)
+    energy = 0.0
+    for i in range(n):
+        point_energy = 0.0
+        out = False
+        for k in range(pattern):
+            x = R[0, 0] * rays[i, k, 0] + R[0, 1] * rays[i, k, 1] + R[0, 2] * rays[i, k, 2] + idepth[i] * t[0]
+            y = R[1, 0] * rays[i, k, 0] + R[1, 1] * rays[i, k, 1] + R[1, 2] * rays[i, k, 2] + idepth[i] * t[1]
+            z = R[2, 0] * rays[i, k, 0] + R[2, 1] * rays[i, k, 1] + R[2, 2] * rays[i, k, 2] + idepth[i] * t[2]
+            if not z > 0.0:
+                out = True
+                break
+            inverse_z = 1.0 / z
+            u = x * inverse_z
+            v = y * inverse_z
+            Ku = fx * u + cx
+            Kv = fy * v + cy
+            if not (Ku > border and Kv > border and Ku < width - 1 - border and Kv < height - 1 - border):
+                out = True
+                break
+            intensity, gx, gy = bilinear3(packed, Ku, Kv)
+            residual = intensity - (factor * color[i, k] + offset)
+            target_weight = np.sqrt(weight_component / (weight_component + gx * gx + gy * gy))
+            gradient_weight = 0.5 * (target_weight + host_weight[i, k])
+            magnitude = abs(residual)
+            huber_w = 1.0 if magnitude <= huber else huber / magnitude
+            point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
+            residuals[k] = residual
+            weights[k] = huber_w * gradient_weight * gradient_weight
+            if linearize:
+                d = idepth[i] * inverse_z  # the new inverse depth 1 / Z_target
+                dx = gx * fx
+                dy = gy * fy
+                J[k, 0] = d * dx
+                J[k, 1] = d * dy
+                J[k, 2] = -d * (u * dx + v * dy)
+                J[k, 3] = -(u * v * dx + dy * (1.0 + v * v))
+                J[k, 4] = u * v * dy + dx * (1.0 + u * u)
+                J[k, 5] = u * dy - v * dx
+                J[k, 6] = -factor * (color[i, k] - host_b)  # a_target (a_host: the opposite)
+                J[k, 7] = -1.0  # b_target
+                J[k, 8] = factor  # b_host
+                # d(u, v) / d(host inverse depth) = (t_xy - (u, v) t_z) / z
+                Jd[k] = (dx * (t[0] - u * t[2]) + dy * (t[1] - v * t[2])) * inverse_z
+        if out:
+            status[i] = 1
+            continue
+        if point_energy > outlier_energy:
+            status[i] = 2
+            energy += outlier_energy
+            continue
+        energy += point_energy
+        if linearize:
+            for k in range(pattern):
+                w = weights[k]
+                r = residuals[k]
+                Hdd[i] += w * Jd[k] * Jd[k]
+                bd[i] += w * Jd[k] * r
+                for a in range(9):
+                    wa = w * J[k, a]
+                    m[a] += wa * r
+                    C[i, a] += wa * Jd[k]
+                    for b in range(a, 9):
+                        M[a, b] += wa * J[k, b]
+    for a in range(9):
+        for b in range(a):
+            M[a, b] = M[b, a]
+    return energy, status, M, m, C, Hdd, bd
