@@ -1,9 +1,10 @@
 """The direct odometry on the synthetic presets: Sim(3)-aligned ATE, frames tracked, initialization, failures.
 
     python3 benchmarks/direct_synthetic.py [--presets smooth forward ...] [--frames 60] [--size 640x480]
+        [--set direct.window.enabled=false ...]
 
 Each preset is rendered by vo_core.synthetic (seed 0 unless --seed) and tracked by DirectOdometry with the
-default DirectConfig; the estimate is evaluated by vo_core.eval.evaluate against the rendered ground truth.
+default configuration (with --set overrides); the estimate is evaluated by vo_core.eval.evaluate against the rendered ground truth.
 """
 
 from __future__ import annotations
@@ -17,16 +18,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from vo_core.direct.config import DirectConfig  # noqa: E402
+from vo_core.config import load_config  # noqa: E402
 from vo_core.direct.odometry import DirectOdometry  # noqa: E402
 from vo_core.eval.metrics import evaluate  # noqa: E402
 from vo_core.synthetic import PRESETS, make_sequence  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 
-def run(preset: str, frames: int, width: int, height: int, seed: int) -> None:
+def run(preset: str, frames: int, width: int, height: int, seed: int, overrides: list[str]) -> None:
     sequence = make_sequence(preset, frames, seed, width, height)
-    odometry = DirectOdometry(DirectConfig(), None, sequence.camera, seed)
+    config = load_config(None, [*overrides, "method=direct"])
+    odometry = DirectOdometry(config.direct, config.init, sequence.camera, seed)
     stamps, poses, failures, init_frame, track_ms = [], [], 0, None, []
     start = time.perf_counter()
     for frame in sequence:
@@ -58,10 +60,11 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--size", default="640x480", help="WxH")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
     for preset in args.presets:
-        run(preset, args.frames, width, height, args.seed)
+        run(preset, args.frames, width, height, args.seed, args.overrides)
 
 
 if __name__ == "__main__":

@@ -147,6 +147,8 @@ class WindowConfig:
     border: float = 2.0  # residuals whose pattern comes this close to the image edge are out
     min_inverse_depth: float = 1e-4  # inverse depths are kept positive (points at infinity are valid)
     idepth_regularization: float = 1e-6  # keeps a point without residuals solvable (its step is then zero)
+    marginalization: bool = True  # keep leaving keyframes as a prior (DSO); False drops them
+    marginalization_damping: float = 1e-6  # added to the leaving keyframe's block before its inverse
 
 
 @dataclass

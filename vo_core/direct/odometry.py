@@ -31,6 +31,7 @@ from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
+from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid, to_level
@@ -120,6 +121,7 @@ class DirectOdometry:
         self.initializer = self._make_initializer()
         self.state = _State.INITIALIZING
         self.keyframes: list[Keyframe] = []  # the window, oldest first
+        self.prior = MarginalizationPrior()  # what the keyframes that left the window still say
         self.keyframe_poses: dict[int, np.ndarray] = {}  # every keyframe ever, for viewers
         self.history: list[_Tracked] = []  # tracked frames since (re)initialization, newest last
         self.T_world_origin = np.eye(4)  # where the next initialization's first frame sits in the world
@@ -205,6 +207,7 @@ class DirectOdometry:
         )
         first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
         self.keyframes = [first]
+        self.prior = MarginalizationPrior()
         self.keyframe_poses[first.frame_index] = first.T_world_cam
         result.events.append(
             Event(
@@ -320,6 +323,7 @@ class DirectOdometry:
         """Forget the map and start initializing again (the world origin is kept)."""
         self.state = _State.INITIALIZING
         self.keyframes = []
+        self.prior = MarginalizationPrior()
         self.history = []
         self.initializer = self._make_initializer()
         self.first_rmse = -1.0
@@ -343,7 +347,7 @@ class DirectOdometry:
             getattr(frame, "exposure_ms", None),
             keyframe_id=self.keyframes[-1].keyframe_id + 1 if self.keyframes else 0,
         )
-        dropped = self._slide_window(keyframe)
+        dropped = self._slide_window(keyframe, frame, result)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
         if self.config.window.enabled and len(self.keyframes) >= 2:
@@ -372,7 +376,7 @@ class DirectOdometry:
     def _optimize_window(self, frame, result: FrameResult) -> None:
         """FullSystem::optimize: the joint photometric bundle adjustment of the window; the frame that became
         the newest keyframe takes its optimized pose (for the motion model and the trajectory)."""
-        report = self.window_optimizer.optimize(self.keyframes)
+        report = self.window_optimizer.optimize(self.keyframes, self.prior)
         for keyframe in self.keyframes:
             self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         newest = self.keyframes[-1]
@@ -381,8 +385,9 @@ class DirectOdometry:
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
 
-    def _slide_window(self, new_keyframe: Keyframe) -> list[int]:
-        """Drop the keyframes DSO would marginalize (their points leave the tracking reference)."""
+    def _slide_window(self, new_keyframe: Keyframe, frame, result: FrameResult) -> list[int]:
+        """The keyframes DSO marginalizes leave the window; with the window optimization their information
+        (and that of the points they host) stays as the prior."""
         if not self.keyframes:
             return []
         in_view = np.array([self._fraction_in_view(k, new_keyframe) for k in self.keyframes])
@@ -398,8 +403,23 @@ class DirectOdometry:
             in_view, log_brightness, self.config.keyframes,
         )
         dropped = [self.keyframes[i].frame_index for i in drop]
-        self.keyframes = [k for i, k in enumerate(self.keyframes) if i not in drop]
+        for frame_index in dropped:
+            self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
+                              frame, result)
         return dropped
+
+    def _marginalize(self, index: int, frame, result: FrameResult) -> None:
+        window = self.config.window
+        leaving = self.keyframes[index]
+        points = 0
+        if window.enabled and window.marginalization and len(self.keyframes) >= 2:
+            self.prior, points = self.window_optimizer.marginalize(self.keyframes, index, self.prior)
+        del self.keyframes[index]
+        result.events.append(_event(
+            EventKind.KEYFRAME_MARGINALIZED, frame,
+            {"keyframe": leaving.frame_index, "marginalized_points": points,
+             "dropped_points": len(leaving.active_idepth) - points, "prior_keyframes": len(self.prior)},
+        ))
 
     def _fraction_in_view(self, keyframe: Keyframe, viewer: Keyframe) -> float:
         """Share of the keyframe's active and immature points that project into ``viewer``."""

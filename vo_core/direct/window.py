@@ -14,9 +14,9 @@ gradient-dependent weights). One iteration of Levenberg-Marquardt:
    then each point's step by back substitution;
 4. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100), as DSO.
 
-Gauge: the oldest keyframe of the window (pose and affine) is held fixed; the scale is kept by damping. What
-leaves the window is dropped rather than kept as a marginalization prior (DSO's prior is future work:
-BENCHMARKS.md says what this costs).
+Gauge: the oldest keyframe of the window (pose and affine) is held fixed. Keyframes that left the window
+are kept as a prior (marginalization.py), which also holds the scale: without it the scale is free in every
+window and drifts.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ import numpy as np
 from vo_core.direct.affine import relative_affine
 from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN
+from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.photometric_kernels import pair_linearization
 from vo_core.geometry.lie import se3_adjoint, se3_exp, se3_inverse
 
@@ -74,13 +75,13 @@ class WindowOptimizer:
         self.outlier_energy = len(PATTERN) * outlier_threshold
         self.weight_component = outlier_sum_component
 
-    def optimize(self, keyframes: list) -> WindowReport:
+    def optimize(self, keyframes: list, prior: MarginalizationPrior) -> WindowReport:
         start = time.perf_counter()
         hosts = self._host_points(keyframes)
         idepth = np.concatenate([k.active_idepth for k in keyframes]) if keyframes else np.zeros(0)
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
-        system = self._linearize(keyframes, hosts, poses, affines, idepth)
+        system = self._linearize(keyframes, hosts, poses, affines, idepth, prior)
         energy_before = energy = system.energy
         lam = self.config.initial_lambda
         iterations = 0
@@ -89,7 +90,7 @@ class WindowOptimizer:
             trial_poses = [se3_exp(step_keyframes[i, :6]) @ T for i, T in enumerate(poses)]
             trial_affines = [ab + step_keyframes[i, 6:] for i, ab in enumerate(affines)]
             trial_idepth = np.maximum(idepth + step_points, self.config.min_inverse_depth)
-            trial = self._linearize(keyframes, hosts, trial_poses, trial_affines, trial_idepth)
+            trial = self._linearize(keyframes, hosts, trial_poses, trial_affines, trial_idepth, prior)
             if trial.energy < energy:
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
@@ -103,6 +104,21 @@ class WindowOptimizer:
             iterations, energy_before, energy, len(idepth), system.residuals, removed,
             (time.perf_counter() - start) * 1000.0,
         )
+
+    def marginalize(self, keyframes: list, leaving: int, prior: MarginalizationPrior) -> tuple[MarginalizationPrior, int]:
+        """The prior once keyframe ``leaving`` (a window index) goes, with the points it hosts (DSO's
+        marginalizeFrame after marginalizePointsF); and how many points were marginalized."""
+        hosts = self._host_points(keyframes)
+        idepth = np.concatenate([k.active_idepth for k in keyframes])
+        poses = [k.T_world_cam for k in keyframes]
+        affines = [np.asarray(k.affine, float) for k in keyframes]
+        system = self._linearize(keyframes, hosts, poses, affines, idepth, MarginalizationPrior(), only_host=leaving)
+        H_pp = system.H_pp + self.config.idepth_regularization
+        H = system.H_kk - (system.H_kp / H_pp) @ system.H_kp.T
+        b = system.b_k - (system.H_kp / H_pp) @ system.b_p
+        frame_ids = [k.frame_index for k in keyframes]
+        new_prior = prior.marginalize(frame_ids, poses, affines, H, b, leaving, self.config.marginalization_damping)
+        return new_prior, int(np.count_nonzero(system.inliers))
 
     # ------------------------------------------------------------------------------------ linearization
 
@@ -120,7 +136,7 @@ class WindowOptimizer:
             offset += len(keyframe.active_idepth)
         return hosts
 
-    def _linearize(self, keyframes, hosts, poses, affines, idepth) -> "_System":
+    def _linearize(self, keyframes, hosts, poses, affines, idepth, prior, only_host: int | None = None) -> "_System":
         n_kf = len(keyframes)
         size = PARAMS_PER_KEYFRAME * n_kf
         system = _System(np.zeros((size, size)), np.zeros(size), np.zeros((size, len(idepth))),
@@ -128,12 +144,14 @@ class WindowOptimizer:
                          np.zeros(len(idepth), int), 0.0, 0)
         for h, host in enumerate(hosts):
             count = len(keyframes[h].active_idepth)
-            if count == 0:
+            if count == 0 or (only_host is not None and h != only_host):
                 continue
             points = slice(host.offset, host.offset + count)
             for t, target in enumerate(keyframes):
                 if t != h:
                     self._add_pair(system, keyframes[h], target, h, t, host, points, poses, affines, idepth)
+        frame_ids = [k.frame_index for k in keyframes]
+        system.energy += prior.add_to(system.H_kk, system.b_k, frame_ids, poses, affines)
         return system
 
     def _add_pair(self, system, host_kf, target_kf, h, t, host, points, poses, affines, idepth) -> None:
