@@ -141,7 +141,7 @@ def test_run_writes_the_five_files_and_they_parse_back(dataset, tmp_path, script
     # The scripted poses are the truth at twice the scale: Sim(3) alignment makes them exact.
     assert metrics["evaluation"]["ate"]["rmse"] < 1e-6
     config = load_config(out / "config.yaml")
-    assert (config.method, config.seed) == ("klt", 3)
+    assert (config.method, config.seed) == ("direct", 3)
 
 
 def test_a_rerun_recording_is_written_by_default_or_where_asked(dataset, tmp_path, scripted, capsys):

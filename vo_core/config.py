@@ -32,7 +32,7 @@ class DatasetConfig:
 
 @dataclass
 class Config:
-    method: str = "klt"
+    method: str = "direct"  # the main job until fdmo lands: DSO-style direct odometry with its window optimization
     seed: int = 0  # every random choice (RANSAC, sampling) draws from generators seeded with this
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     klt: KltConfig = field(default_factory=KltConfig)
