@@ -1,8 +1,70 @@
-"""Settings of the feature-based initializer (paper 004). Filled in by the initializer issue."""
+"""Settings of the feature-based initializer (paper 004: Gladkova, "Feature-based Initialization for Monocular
+Direct Visual Odometry", TU Munich).
 
-from dataclasses import dataclass
+Values the paper gives are cited by section; the two-view model selection follows ORB-SLAM (Mur-Artal et al.
+2015, section IV, and ORB_SLAM2 src/Initializer.cc), cited as "ORB-SLAM". Values marked "ours" are not in
+either source.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from vo_core.klt.config import CornerConfig, KltTrackerConfig
+
+
+@dataclass
+class FeatureTrackConfig:
+    """Set-up routine (004 section 3.1): corners in the reference frame, KLT frame to frame, 1 -> 2 -> 1 check."""
+
+    num_frames: int = 4  # 3.1: N = 4 frames (the reference and 3 tracked ones) before the first attempt
+    min_tracks: int = 80  # 3.1 / Algorithm 1 MIN_NUM_MATCHES (value not given; ours): fewer -> new reference
+    min_median_flow_px: float = 1.0  # no two-view attempt while the tracks barely moved (ours): "no motion"
+    corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_corners=1000, min_distance=10.0))
+    klt: KltTrackerConfig = field(default_factory=KltTrackerConfig)  # forward-backward error below 1 px
+
+
+@dataclass
+class TwoViewConfig:
+    """Homography and fundamental matrix in parallel (004 section 3.2, after ORB-SLAM IV)."""
+
+    ransac_iterations: int = 200  # ORB-SLAM: 200 sets of 8 correspondences, shared by both models
+    sample_size: int = 8  # ORB-SLAM: 8 points for both the normalized DLT (H) and the 8-point algorithm (F)
+    sigma_px: float = 1.0  # ORB-SLAM: measurement noise of one pixel
+    chi2_homography: float = 5.99  # 3.2 eq. 3: T_H (chi-square 95 %, 2 DOF)
+    chi2_fundamental: float = 3.84  # 3.2 eq. 3: T_F (chi-square 95 %, 1 DOF)
+    score_gamma: float = 5.99  # 3.2 eq. 3: Gamma = T_H, so both models score on the same scale
+    homography_ratio: float = 0.4  # 3.2 eq. 1: homography when S_H / (S_H + S_F) > 0.4
+    max_reprojection_px: float = 2.0  # ORB-SLAM CheckRT: squared error < 4 sigma^2 in both views
+    min_parallax_deg: float = 1.0  # ORB-SLAM Initialize(): minParallax = 1 degree
+    min_triangulated: int = 50  # ORB-SLAM: minTriangulated = 50 good points for a hypothesis
+    min_good_ratio: float = 0.9  # ORB-SLAM: the best hypothesis explains 90 % of the model's inliers
+    ambiguity_ratio: float = 0.75  # ORB-SLAM ReconstructH: second best < 0.75 best; ReconstructF uses 0.7
+    parallax_rank: int = 50  # ORB-SLAM CheckRT: parallax of the 50th smallest angle (robust to a few far points)
+
+
+@dataclass
+class GeometricBAConfig:
+    """Geometric bundle adjustment over the window (004 section 3.2) and its outlier removal."""
+
+    huber_px: float = 2.0  # Huber threshold of the reprojection residual (ours, as the KLT baseline's)
+    max_iterations: int = 20  # Levenberg-Marquardt iterations per adjustment (ours)
+    severe_outlier_px: float = 8.0  # 3.2: "severe" outliers, removed and re-adjusted until none (value ours)
+    outlier_px: float = 3.0  # 3.2: afterwards "normal" outliers beyond 3 px are removed too
+
+
+@dataclass
+class DepthPriorConfig:
+    """Semi-dense points (004 section 3.3): DSO selection, depths seeded from the feature points."""
+
+    neighbours: int = 6  # feature points whose inverse depths give a selected pixel its prior (ours)
+    max_neighbour_distance_px: float = 60.0  # farther than this from every feature: no prior, not handed over (ours)
 
 
 @dataclass
 class InitConfig:
-    pass
+    tracks: FeatureTrackConfig = field(default_factory=FeatureTrackConfig)
+    two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
+    geometric_ba: GeometricBAConfig = field(default_factory=GeometricBAConfig)
+    depth_prior: DepthPriorConfig = field(default_factory=DepthPriorConfig)
+    max_frames: int = 30  # give up on a reference after this many frames without a model (ours)

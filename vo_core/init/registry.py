@@ -6,7 +6,7 @@ from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.init.base import Initializer
 
-INITIALIZERS = ("coarse",)
+INITIALIZERS = ("coarse", "features")
 
 
 def make_initializer(direct_config, init_config, camera: PinholeCamera, seed: int) -> Initializer:
@@ -19,4 +19,10 @@ def make_initializer(direct_config, init_config, camera: PinholeCamera, seed: in
             c.coarse_init, c.selector, c.tracker.huber_threshold, c.immature.outlier_threshold,
             c.point_density, seed,
         )
+    if name == "features":
+        from vo_core.init.config import InitConfig
+        from vo_core.init.feature_initializer import FeatureInitializer
+
+        config = init_config if init_config is not None else InitConfig()
+        return FeatureInitializer(config, direct_config.selector, direct_config.point_density, camera, seed)
     raise InputError(f"config key 'direct.initializer': {name!r} is not one of {', '.join(INITIALIZERS)}")

@@ -1,0 +1,84 @@
+"""The feature-based initializer on rendered sequences (vo_core.synthetic presets) and inside DirectOdometry."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from test_direct_odometry import smooth_pose
+from test_direct_support import PlaneScene, aligned_ate, render_frame, small_camera
+from vo_core.direct.config import DirectConfig
+from vo_core.direct.odometry import DirectOdometry
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.events import EventKind
+from vo_core.geometry.lie import se3_inverse, so3_log
+from vo_core.init.config import InitConfig
+from vo_core.init.feature_initializer import FeatureInitializer
+from vo_core.init.registry import make_initializer
+from vo_core.synthetic import make_sequence
+
+FRAMES = 12
+
+
+def run_initializer(preset: str, frames: int = FRAMES):
+    """Feed the preset's frames until a result; returns (result or None, status, sequence, first position)."""
+    sequence = make_sequence(preset, num_frames=frames, width=320, height=240)
+    config = DirectConfig()
+    initializer = make_initializer(DirectConfig(initializer="features"), InitConfig(), sequence.camera, 0)
+    assert isinstance(initializer, FeatureInitializer)
+    first = 0
+    for position, frame in enumerate(sequence):
+        pyramid = ImagePyramid(frame.image.astype(np.float32), sequence.camera, config.pyramid)
+        if not initializer.started:
+            initializer.set_first(frame.index, pyramid, None)
+            first = position
+            continue
+        result = initializer.track(frame.index, pyramid, None)
+        if result is not None:
+            return result, initializer.status(), sequence, first, position
+    return None, initializer.status(), sequence, first, None
+
+
+@pytest.mark.parametrize("preset, model", [("planar", "H"), ("smooth", "F")])
+def test_initial_pose_and_model_on_rendered_scenes(preset, model):
+    result, status, sequence, first, second = run_initializer(preset)
+    assert result is not None, status
+    assert result.details["model"] == model and status["stage"] == "succeeded"
+    truth = se3_inverse(sequence.ground_truth.poses[first]) @ sequence.ground_truth.poses[second]
+    estimate = result.T_first_second
+    rotation_error = np.degrees(np.linalg.norm(so3_log(truth[:3, :3].T @ estimate[:3, :3])))
+    cosine = truth[:3, 3] @ estimate[:3, 3] / np.linalg.norm(truth[:3, 3]) / np.linalg.norm(estimate[:3, 3])
+    assert rotation_error < 0.5  # measured 0.03 (planar) and 0.36 (smooth) degrees
+    assert np.degrees(np.arccos(min(cosine, 1.0))) < 8.0  # measured 0.5 and 4.7 degrees (1.1 deg of parallax)
+    assert np.mean(result.inverse_depths) == pytest.approx(1.0)  # DSO's scale
+    assert len(result.points_uv) == len(result.inverse_depths) > 1000  # features plus selected pixels
+    assert result.second_frame_index - result.first_frame_index <= 10
+
+
+@pytest.mark.parametrize("preset, reason", [("rotation", "parallax|explains|ambiguous"), ("static", "no motion")])
+def test_no_initialization_without_translation(preset, reason):
+    result, status, *_ = run_initializer(preset, frames=10)
+    assert result is None
+    assert status["stage"] == "rejected"
+    assert re.search(reason, status["reason"])
+
+
+def test_direct_odometry_tracks_after_the_feature_initializer():
+    camera = small_camera(320, 240)
+    scene = PlaneScene(seed=2)
+    odometry = DirectOdometry(DirectConfig(initializer="features"), InitConfig(), camera, 0)
+    poses = [smooth_pose(i) for i in range(30)]
+    results = [odometry.process(render_frame(scene, camera, i, T)) for i, T in enumerate(poses)]
+    first = next(i for i, r in enumerate(results) if r.tracked)
+    assert first <= 8  # the coarse initializer needs 10 frames here
+    tracked = [r for r in results if r.T_world_cam is not None]
+    assert len(tracked) == len(results) - first
+    estimated = np.array([r.T_world_cam[:3, 3] for r in tracked])
+    truth = np.array([poses[r.frame_index][:3, 3] for r in tracked])
+    path = np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1))
+    assert aligned_ate(estimated, truth) < 0.02 * path
+    succeeded = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_SUCCEEDED]
+    assert len(succeeded) == 1 and succeeded[0].details["model"] in ("H", "F")
+    assert succeeded[0].details["points"] >= 50

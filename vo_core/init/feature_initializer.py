@@ -1,0 +1,149 @@
+"""The feature-based initializer of the direct system (paper 004, Algorithm 1 "trackFrame").
+
+1. Corners in the reference frame, tracked frame to frame by KLT with a forward-backward check (3.1); too
+   few surviving tracks give up this reference (the odometry then starts again from its next frame).
+2. From the N-th frame on (N = 4), each frame is tried against the reference: homography and fundamental
+   matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/init/two_view.py).
+3. Geometric bundle adjustment over every frame of the window with severe- and normal-outlier removal
+   (3.2, vo_core/init/geometric_ba.py).
+4. DSO-selected pixels of the reference frame get inverse depths from the adjusted feature points around
+   them (the prior of 3.3), and the features themselves are handed over too.
+
+The result is scaled as DSO expects: mean inverse depth 1 in the first keyframe.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from vo_core.direct.config import SelectorConfig
+from vo_core.direct.pixel_selector import PixelSelector
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.init.config import DepthPriorConfig, InitConfig
+from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
+from vo_core.init.klt_tracks import FeatureTracks
+from vo_core.init.result import InitializationResult
+from vo_core.init.two_view import TwoViewFailure, reconstruct
+
+
+def gray_image(pyramid: ImagePyramid) -> np.ndarray:
+    """The full-resolution photometric image as uint8 for corner detection and KLT."""
+    return np.clip(np.round(pyramid[0].intensity), 0, 255).astype(np.uint8)
+
+
+def normalize_scale(T_first_second: np.ndarray, inverse_depths: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Rescale the map so the mean inverse depth is 1 (DSO initializeFromInitializer); the translation scales
+    with the depths. Returns (pose, inverse depths, factor applied to lengths)."""
+    factor = float(np.mean(inverse_depths))
+    T = T_first_second.copy()
+    T[:3, 3] *= factor
+    return T, inverse_depths / factor, factor
+
+
+class FeatureInitializer:
+    def __init__(self, config: InitConfig, selector: SelectorConfig, point_density: float, camera: PinholeCamera, seed: int):
+        self.config = config
+        self.selector = selector
+        self.point_density = point_density
+        self.camera = camera
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.max_frames = config.max_frames
+        self.tracks: FeatureTracks | None = None
+        self.reference: ImagePyramid | None = None
+        self._status: dict[str, Any] = {"stage": "waiting for a reference frame"}
+
+    @property
+    def started(self) -> bool:
+        return self.tracks is not None
+
+    def status(self) -> dict[str, Any]:
+        return dict(self._status)
+
+    def set_first(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> None:
+        self.reference = pyramid
+        self.tracks = FeatureTracks(self.config.tracks, gray_image(pyramid), frame_index)
+        self._status = {"stage": "tracking", "corners": self.tracks.num_alive}
+
+    def track(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> InitializationResult | None:
+        tracks = self.tracks
+        alive = tracks.add(frame_index, gray_image(pyramid))
+        self._status = {"stage": "tracking", "tracks_kept": alive, "frames": tracks.num_frames}
+        if alive < self.config.tracks.min_tracks:
+            self._reject(f"{alive} tracks survived, fewer than {self.config.tracks.min_tracks}: new reference")
+            self.tracks = None  # not started: the odometry hands the next frame as the new reference
+            return None
+        if tracks.num_frames < self.config.tracks.num_frames:
+            return None
+        return self._attempt(tracks)
+
+    def _reject(self, reason: str, **details) -> None:
+        self._status.update(details, stage="rejected", reason=reason)
+
+    def _attempt(self, tracks: FeatureTracks) -> InitializationResult | None:
+        window = tracks.window()
+        flow = float(np.median(np.linalg.norm(window[-1] - window[0], axis=1)))
+        if flow < self.config.tracks.min_median_flow_px:
+            self._reject(f"no motion: median flow {flow:.2f} px since the reference")
+            return None
+        try:
+            geometry = reconstruct(
+                self.camera, window[0], window[-1], self.config.two_view, self.rng, list(window[1:-1])
+            )
+        except TwoViewFailure as failure:
+            self._reject(str(failure))
+            return None
+        scores = geometry.scores
+        model_details = {
+            "model": geometry.model, "score_h": round(scores.score_h, 1), "score_f": round(scores.score_f, 1),
+            "ratio_h": round(scores.ratio, 3), "parallax_deg": round(geometry.parallax_deg, 2),
+        }
+        good = geometry.good
+        observations = window[:, good]
+        poses = initial_poses(self.camera, observations, geometry.points_first[good], geometry.T_first_second)
+        estimate = adjust_with_outlier_removal(
+            self.camera, poses, geometry.points_first[good], observations, self.config.geometric_ba
+        )
+        kept = int(estimate.keep.sum())
+        ba_details = {
+            "tracks_kept": window.shape[1], "triangulated": int(good.sum()), "severe_outliers": estimate.severe_removed,
+            "outliers": estimate.outliers_removed, "points": kept, "reprojection_rms_px": round(estimate.rms_px, 3),
+        }
+        if kept < self.config.two_view.min_triangulated:
+            self._reject(f"{kept} points left after the bundle adjustment", **model_details, **ba_details)
+            return None
+        uv_features = observations[0][estimate.keep]
+        idepth_features = 1.0 / estimate.points[estimate.keep, 2]
+        uv, idepth = self._with_selected_pixels(uv_features, idepth_features)
+        T_first_second, idepth, _ = normalize_scale(estimate.poses_world_cam[-1], idepth)
+        self._status = {"stage": "succeeded", **model_details, **ba_details}
+        return InitializationResult(
+            tracks.frame_indices[0], tracks.frame_indices[-1], T_first_second, uv, idepth,
+            details={**model_details, **ba_details, "frames": tracks.num_frames, "points_handed_over": len(uv)},
+        )
+
+    def _with_selected_pixels(self, uv_features: np.ndarray, idepth_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The features plus DSO-selected pixels (32x32-block thresholds, median + 7) whose inverse depth is
+        the median of the nearest features' (the feature depths as prior, 004 section 3.3)."""
+        selection = PixelSelector(self.selector, self.seed).select(self.reference.levels, self.point_density)
+        uv_selected, idepth_selected = depth_prior(
+            selection.uv.astype(float), uv_features, idepth_features, self.config.depth_prior
+        )
+        return np.vstack([uv_features, uv_selected]), np.concatenate([idepth_features, idepth_selected])
+
+
+def depth_prior(
+    uv: np.ndarray, uv_features: np.ndarray, idepth_features: np.ndarray, config: DepthPriorConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels, inverse depths) of the pixels ``uv`` close enough to the features to inherit their depth."""
+    count = min(config.neighbours, len(uv_features))
+    if count == 0 or len(uv) == 0:
+        return np.empty((0, 2)), np.empty(0)
+    distance, nearest = cKDTree(uv_features).query(uv, k=count)
+    distance, nearest = distance.reshape(len(uv), count), nearest.reshape(len(uv), count)
+    near = distance[:, 0] <= config.max_neighbour_distance_px
+    return uv[near], np.median(idepth_features[nearest[near]], axis=1)

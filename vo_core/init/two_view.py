@@ -1,0 +1,271 @@
+"""Two-view geometry as ORB-SLAM initializes (Mur-Artal et al. 2015, section IV; paper 004 section 3.2).
+
+A homography and a fundamental matrix are estimated in parallel by RANSAC over the same 8-point samples,
+each scored by its symmetric transfer error (004 eqs. 2-5); the homography wins when
+S_H / (S_H + S_F) > 0.4 (eq. 1). The winner is decomposed into motion hypotheses (the homography by Faugeras'
+method through cv2.decomposeHomographyMat, the fundamental matrix through E = K^T F K and its four
+(R, t) solutions), and the hypothesis with clearly the most points triangulated in front of both cameras,
+reprojecting well and seen under enough parallax is kept. When two hypotheses are close, or too few points
+or too little parallax support the best, there is no answer: a wrong map is worse than a later one.
+
+Conventions: ``uv_first`` / ``uv_second`` are (N, 2) pixels; the pose returned is ``T_first_second`` with a
+unit baseline.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3, se3_inverse
+from vo_core.init.config import TwoViewConfig
+from vo_core.klt.triangulation import bearing_angles, triangulate
+
+MIN_CORRESPONDENCES = 8  # both minimal solvers use eight points
+
+
+@dataclass
+class ModelScores:
+    """The outcome of the parallel RANSAC: both models, their scores and inliers."""
+
+    H: np.ndarray  # 3x3, x_second ~ H x_first
+    F: np.ndarray  # 3x3, x_second^T F x_first = 0
+    score_h: float
+    score_f: float
+    inliers_h: np.ndarray  # (N,) bool
+    inliers_f: np.ndarray
+
+    @property
+    def ratio(self) -> float:
+        """R_H = S_H / (S_H + S_F) (004 eq. 1)."""
+        total = self.score_h + self.score_f
+        return self.score_h / total if total > 0 else 0.0
+
+
+@dataclass
+class TwoViewResult:
+    model: str  # "H" or "F"
+    T_first_second: np.ndarray  # 4x4, |t| = 1
+    points_first: np.ndarray  # (N, 3) in the first camera, valid where ``good``
+    good: np.ndarray  # (N,) bool: model inlier, in front of both cameras, reprojecting well
+    parallax_deg: float
+    scores: ModelScores
+    hypotheses_good: list[int]  # good points of every hypothesis, for the event
+
+
+class TwoViewFailure(Exception):
+    """No reliable relative pose; the message says why (it goes into the initializer's status)."""
+
+
+# ------------------------------------------------------------------------------------------ estimation
+
+
+def _normalizing_transform(uv: np.ndarray) -> np.ndarray:
+    """Hartley normalization: centroid to the origin, mean absolute deviation 1 per axis (ORB-SLAM Normalize)."""
+    mean = uv.mean(axis=0)
+    spread = np.abs(uv - mean).mean(axis=0)
+    spread[spread == 0] = 1.0
+    return np.array([[1 / spread[0], 0, -mean[0] / spread[0]], [0, 1 / spread[1], -mean[1] / spread[1]], [0, 0, 1]])
+
+
+def _homogeneous(uv: np.ndarray) -> np.ndarray:
+    return np.concatenate([uv, np.ones((*uv.shape[:-1], 1))], axis=-1)
+
+
+def _null_vectors(A: np.ndarray) -> np.ndarray:
+    """Right singular vectors of the smallest singular value of a stack of matrices (S, m, 9) -> (S, 9)."""
+    return np.linalg.svd(A)[2][:, -1, :]
+
+
+def _homographies(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Normalized DLT per sample, x1/x2 (S, 8, 2) normalized pixels -> (S, 3, 3) (Hartley-Zisserman alg. 4.1)."""
+    S, n, _ = x1.shape
+    u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
+    zero, one = np.zeros_like(u1), np.ones_like(u1)
+    rows_a = np.stack([zero, zero, zero, -u1, -v1, -one, v2 * u1, v2 * v1, v2], axis=-1)
+    rows_b = np.stack([u1, v1, one, zero, zero, zero, -u2 * u1, -u2 * v1, -u2], axis=-1)
+    A = np.concatenate([rows_a, rows_b], axis=1)
+    return _null_vectors(A).reshape(S, 3, 3)
+
+
+def _fundamentals(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Eight-point algorithm per sample with the rank-2 constraint enforced (Hartley-Zisserman alg. 11.1)."""
+    S = len(x1)
+    u1, v1, u2, v2 = x1[..., 0], x1[..., 1], x2[..., 0], x2[..., 1]
+    A = np.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, np.ones_like(u1)], axis=-1)
+    F = _null_vectors(A).reshape(S, 3, 3)
+    U, singular, Vt = np.linalg.svd(F)
+    singular[:, 2] = 0.0
+    return U @ (singular[:, :, None] * Vt)
+
+
+def _homography_errors(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared transfer errors d_cr^2 and d_rc^2 (004 eqs. 4, 5) of every model (S, 3, 3) and point: (S, N)."""
+
+    def transfer(M, source, target):
+        mapped = np.einsum("sij,nj->sni", M, source)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            projected = mapped[..., :2] / mapped[..., 2:]
+        error = np.sum((projected - target[None, :, :2]) ** 2, axis=-1)
+        return np.where(np.isfinite(error), error, np.inf)
+
+    return transfer(H, p1, p2), transfer(np.linalg.inv(H), p2, p1)
+
+
+def _epipolar_errors(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Squared distances of each point to its epipolar line in the other image (004 eqs. 4, 5): (S, N) each."""
+    lines_2 = np.einsum("sij,nj->sni", F, p1)  # lines in the second image
+    lines_1 = np.einsum("sji,nj->sni", F, p2)  # F^T x2: lines in the first image
+    algebraic = np.einsum("sni,ni->sn", lines_2, p2)  # x2^T F x1 (the same number for both lines)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = algebraic**2 / np.sum(lines_2[..., :2] ** 2, axis=-1)
+        d1 = algebraic**2 / np.sum(lines_1[..., :2] ** 2, axis=-1)
+    return np.nan_to_num(d2, nan=np.inf), np.nan_to_num(d1, nan=np.inf)
+
+
+def _scores(
+    errors: tuple[np.ndarray, np.ndarray], threshold: float, config: TwoViewConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """S_M = sum rho_M(d_cr^2) + rho_M(d_rc^2), rho_M(d^2) = Gamma - d^2 below T_M (004 eqs. 2, 3), and the
+    inliers (both directions below the threshold), of every model: (S,), (S, N)."""
+    score = np.zeros(errors[0].shape[0])
+    inliers = np.ones(errors[0].shape, bool)
+    for squared in errors:
+        chi2 = squared / config.sigma_px**2
+        below = chi2 < threshold
+        score += np.where(below, config.score_gamma - chi2, 0.0).sum(axis=1)
+        inliers &= below
+    return score, inliers
+
+
+def estimate_models(uv_first: np.ndarray, uv_second: np.ndarray, config: TwoViewConfig, rng: np.random.Generator) -> ModelScores:
+    """Homography and fundamental matrix by RANSAC on the same samples, each the best scored of its kind."""
+    n = len(uv_first)
+    if n < MIN_CORRESPONDENCES:
+        raise TwoViewFailure(f"{n} correspondences, two-view geometry needs {MIN_CORRESPONDENCES}")
+    samples = np.stack([rng.choice(n, config.sample_size, replace=False) for _ in range(config.ransac_iterations)])
+    T1, T2 = _normalizing_transform(uv_first), _normalizing_transform(uv_second)
+    p1, p2 = _homogeneous(uv_first), _homogeneous(uv_second)
+    x1 = (p1 @ T1.T)[:, :2][samples]
+    x2 = (p2 @ T2.T)[:, :2][samples]
+    # Denormalize: x2 = H x1 in pixels is T2^-1 Hn T1; x2^T F x1 = 0 in pixels is T2^T Fn T1.
+    H = np.linalg.inv(T2) @ _homographies(x1, x2) @ T1
+    F = T2.T @ _fundamentals(x1, x2) @ T1
+    score_h, inliers_h = _scores(_homography_errors(H, p1, p2), config.chi2_homography, config)
+    score_f, inliers_f = _scores(_epipolar_errors(F, p1, p2), config.chi2_fundamental, config)
+    best_h, best_f = int(np.argmax(score_h)), int(np.argmax(score_f))
+    return ModelScores(
+        H[best_h] / H[best_h][2, 2] if H[best_h][2, 2] != 0 else H[best_h], F[best_f],
+        float(score_h[best_h]), float(score_f[best_f]), inliers_h[best_h], inliers_f[best_f],
+    )
+
+
+# -------------------------------------------------------------------------------------- reconstruction
+
+
+@dataclass
+class _Hypothesis:
+    T_first_second: np.ndarray
+    points: np.ndarray
+    good: np.ndarray
+    parallax_deg: float
+
+
+def _check_motion(
+    camera: PinholeCamera, R: np.ndarray, t: np.ndarray, uv_first: np.ndarray, uv_second: np.ndarray,
+    inliers: np.ndarray, config: TwoViewConfig,
+) -> _Hypothesis:
+    """ORB-SLAM CheckRT: triangulate the inliers under x_second = R x_first + t; good points lie in front of
+    both cameras and reproject within the threshold into both. The parallax is a low rank statistic so that
+    a hypothesis does not pass on a handful of near points."""
+    t = t.ravel() / max(np.linalg.norm(t), 1e-12)
+    T_first_second = se3_inverse(se3(R, t))
+    points, valid = triangulate(
+        camera, np.eye(4), uv_first, T_first_second, uv_second, config.max_reprojection_px, 0.0
+    )
+    good = valid & inliers
+    parallax = 0.0
+    if good.any():
+        angles = np.sort(np.degrees(bearing_angles(camera, np.eye(4), uv_first[good], T_first_second, uv_second[good])))
+        parallax = float(angles[min(config.parallax_rank, len(angles) - 1)])
+    return _Hypothesis(T_first_second, points, good, parallax)
+
+
+def _motion_hypotheses(model: str, scores: ModelScores, K: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(R, t) candidates: Faugeras' decomposition of H (up to 4) or the 4 solutions of E = K^T F K."""
+    if model == "H":
+        _, rotations, translations, _ = cv2.decomposeHomographyMat(scores.H, K)
+        return list(zip(rotations, translations))
+    E = K.T @ scores.F @ K
+    R1, R2, t = cv2.decomposeEssentialMat(E)
+    return [(R1, t), (R1, -t), (R2, t), (R2, -t)]
+
+
+def _pnp_error(camera: PinholeCamera, points: np.ndarray, uv: np.ndarray) -> float:
+    """Median reprojection error (px) of ``points`` in a further view after EPnP: how well a hypothesis'
+    structure explains a third frame."""
+    ok, rvec, tvec = cv2.solvePnP(
+        np.ascontiguousarray(points, float), np.ascontiguousarray(uv, float), camera.K, None, flags=cv2.SOLVEPNP_EPNP
+    )
+    if not ok:
+        return np.inf
+    projected, _ = cv2.projectPoints(points, rvec, tvec, camera.K, None)
+    return float(np.median(np.linalg.norm(projected.reshape(-1, 2) - uv, axis=1)))
+
+
+def _resolve_with_other_views(
+    camera: PinholeCamera, rivals: list[_Hypothesis], uv_others: list[np.ndarray], config: TwoViewConfig
+) -> _Hypothesis | None:
+    """A plane seen in two views leaves two valid motions (Faugeras' two-fold ambiguity); a third view of the
+    same tracks tells them apart, since only the true structure projects into it consistently. Returns the
+    rival whose structure explains the other views clearly best, or None."""
+    if not uv_others:
+        return None
+    errors = []
+    for rival in rivals:
+        good = rival.good
+        if good.sum() < MIN_CORRESPONDENCES:
+            errors.append(np.inf)
+            continue
+        errors.append(max(_pnp_error(camera, rival.points[good], uv[good]) for uv in uv_others))
+    order = np.argsort(errors)
+    best, second = errors[order[0]], errors[order[1]]
+    if best <= config.max_reprojection_px and second > best / config.ambiguity_ratio:
+        return rivals[order[0]]
+    return None
+
+
+def reconstruct(
+    camera: PinholeCamera, uv_first: np.ndarray, uv_second: np.ndarray, config: TwoViewConfig,
+    rng: np.random.Generator, uv_others: list[np.ndarray] | None = None,
+) -> TwoViewResult:
+    """Relative pose (unit baseline) and structure of two views, or TwoViewFailure saying why not.
+
+    ``uv_others``: the same tracks in further frames (e.g. between the two), used only to resolve two
+    hypotheses that explain the two views equally well."""
+    uv_first = np.asarray(uv_first, float)
+    uv_second = np.asarray(uv_second, float)
+    scores = estimate_models(uv_first, uv_second, config, rng)
+    model = "H" if scores.ratio > config.homography_ratio else "F"
+    inliers = scores.inliers_h if model == "H" else scores.inliers_f
+    hypotheses = [
+        _check_motion(camera, R, t, uv_first, uv_second, inliers, config)
+        for R, t in _motion_hypotheses(model, scores, camera.K)
+    ]
+    counts = [int(h.good.sum()) for h in hypotheses]
+    best_count = max(counts)
+    needed = max(config.min_good_ratio * inliers.sum(), config.min_triangulated)
+    prefix = f"{model} (R_H {scores.ratio:.2f})"
+    if best_count < needed:
+        raise TwoViewFailure(f"{prefix}: best motion explains {best_count} points, needs {needed:.0f}")
+    rivals = [h for h, c in zip(hypotheses, counts) if c >= config.ambiguity_ratio * best_count]
+    best = rivals[0] if len(rivals) == 1 else _resolve_with_other_views(camera, rivals, uv_others or [], config)
+    if best is None:
+        ranked = sorted(counts, reverse=True)
+        raise TwoViewFailure(f"{prefix}: ambiguous, two motions explain {ranked[0]} and {ranked[1]} points")
+    if best.parallax_deg < config.min_parallax_deg:
+        raise TwoViewFailure(f"{prefix}: parallax {best.parallax_deg:.2f} deg below {config.min_parallax_deg}")
+    return TwoViewResult(model, best.T_first_second, best.points, best.good, best.parallax_deg, scores, counts)
