@@ -40,7 +40,7 @@ class TwoViewConfig:
     min_triangulated: int = 50  # ORB-SLAM: minTriangulated = 50 good points for a hypothesis
     min_good_ratio: float = 0.9  # ORB-SLAM: the best hypothesis explains 90 % of the model's inliers
     ambiguity_ratio: float = 0.75  # ORB-SLAM ReconstructH: second best < 0.75 best; ReconstructF uses 0.7
-    parallax_rank: int = 50  # ORB-SLAM CheckRT: parallax of the 50th smallest angle (robust to a few far points)
+    parallax_rank: int = 50  # ORB-SLAM CheckRT: the parallax of a hypothesis is its 50th largest angle
 
 
 @dataclass

@@ -179,8 +179,8 @@ def _check_motion(
     inliers: np.ndarray, config: TwoViewConfig,
 ) -> _Hypothesis:
     """ORB-SLAM CheckRT: triangulate the inliers under x_second = R x_first + t; good points lie in front of
-    both cameras and reproject within the threshold into both. The parallax is a low rank statistic so that
-    a hypothesis does not pass on a handful of near points."""
+    both cameras and reproject within the threshold into both. The parallax is the 50th largest angle (ORB-SLAM):
+    enough points must see it, so that a handful of near points does not pass a hypothesis."""
     t = t.ravel() / max(np.linalg.norm(t), 1e-12)
     T_first_second = se3_inverse(se3(R, t))
     points, valid = triangulate(
@@ -189,8 +189,8 @@ def _check_motion(
     good = valid & inliers
     parallax = 0.0
     if good.any():
-        angles = np.sort(np.degrees(bearing_angles(camera, np.eye(4), uv_first[good], T_first_second, uv_second[good])))
-        parallax = float(angles[min(config.parallax_rank, len(angles) - 1)])
+        angles = np.degrees(bearing_angles(camera, np.eye(4), uv_first[good], T_first_second, uv_second[good]))
+        parallax = float(np.sort(angles)[::-1][min(config.parallax_rank, len(angles) - 1)])
     return _Hypothesis(T_first_second, points, good, parallax)
 
 
