@@ -36,6 +36,7 @@ class _LevelPoints:
     color: np.ndarray  # (M,) reference intensity
     centre_rays: np.ndarray  # (N, 3) of the point centres (flow indicators)
     centre_idepth: np.ndarray  # (N,)
+    intrinsics: np.ndarray  # (fx, fy, cx, cy) of the level
 
 
 @dataclass
@@ -83,6 +84,8 @@ def huber_weight(residual: np.ndarray, threshold: float) -> np.ndarray:
 class CoarseTracker:
     def __init__(self, config: TrackerConfig):
         self.config = config
+        self._scale = self._step_scale()
+        self._scale_outer = np.outer(self._scale, self._scale)
         self.reference: ImagePyramid | None = None
         self.levels: list[_LevelPoints] = []
         self.reference_affine = np.zeros(2)
@@ -135,6 +138,7 @@ class CoarseTracker:
             color=color.astype(np.float32),
             centre_rays=camera.unproject(uv_level),
             centre_idepth=idepth,
+            intrinsics=np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
         )
 
     # ------------------------------------------------------------------------------------ residuals
@@ -154,13 +158,12 @@ class CoarseTracker:
         """calcRes: Huber energy of all warped pattern pixels, saturated beyond ``cutoff`` (float32 throughout)."""
         config = self.config
         points = self.levels[level]
-        camera = frame[level].camera
         factor, offset = self._relative_affine(affine, exposure)
         if not (np.isfinite(factor) and np.isfinite(offset)):
             return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0)
         terms, count, num_terms, saturated, energy = warp_residuals(
             points.rays, points.idepth, points.color, T_frame_ref[:3, :3], T_frame_ref[:3, 3],
-            np.array([camera.fx, camera.fy, camera.cx, camera.cy]), WARP_BORDER, frame[level].packed,
+            points.intrinsics, WARP_BORDER, frame[level].packed,
             float(factor), float(offset), float(config.huber_threshold), float(cutoff),
         )
         return _Residuals(energy, num_terms, saturated / max(num_terms, 1), terms, count)
@@ -194,11 +197,10 @@ class CoarseTracker:
         self, frame: ImagePyramid, level: int, res: _Residuals, affine: np.ndarray, exposure: float | None
     ) -> tuple[np.ndarray, np.ndarray]:
         """calcGSSSE: H and b of the 8 parameters (v, w, a, b), averaged per term and scaled as DSO."""
-        camera = frame[level].camera
+        fx, fy = self.levels[level].intrinsics[:2]
         factor, _ = self._relative_affine(affine, exposure)
-        H, b = normal_equations(res.terms, res.count, camera.fx, camera.fy, factor, self.reference_affine[1])
-        scale = self._step_scale()
-        return H * np.outer(scale, scale), b * scale
+        H, b = normal_equations(res.terms, res.count, fx, fy, factor, self.reference_affine[1])
+        return H * self._scale_outer, b * self._scale
 
     def _step_scale(self) -> np.ndarray:
         c = self.config
@@ -269,7 +271,7 @@ class CoarseTracker:
         cutoff = config.cutoff_threshold * cutoff_repeat
         H, b = self._normal_equations(frame, level, res, ab, exposure)
         lam = config.initial_lambda
-        scale = self._step_scale()
+        scale = self._scale
         max_iterations = config.max_iterations[min(level, len(config.max_iterations) - 1)]
         for _ in range(max_iterations):
             H_damped = H + np.diag(np.diag(H)) * lam
