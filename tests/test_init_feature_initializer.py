@@ -22,11 +22,14 @@ from vo_core.synthetic import make_sequence
 FRAMES = 12
 
 
-def run_initializer(preset: str, frames: int = FRAMES):
-    """Feed the preset's frames until a result; returns (result or None, status, sequence, first position)."""
+def run_initializer(preset: str, frames: int = FRAMES, init_config: InitConfig | None = None):
+    """Feed the preset's frames until a result; returns (result or None, status, sequence, first and second
+    positions)."""
     sequence = make_sequence(preset, num_frames=frames, width=320, height=240)
     config = DirectConfig()
-    initializer = make_initializer(DirectConfig(initializer="features"), InitConfig(), sequence.camera, 0)
+    initializer = make_initializer(
+        DirectConfig(initializer="features"), init_config or InitConfig(), sequence.camera, 0
+    )
     assert isinstance(initializer, FeatureInitializer)
     first = 0
     for position, frame in enumerate(sequence):
@@ -82,3 +85,19 @@ def test_direct_odometry_tracks_after_the_feature_initializer():
     succeeded = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_SUCCEEDED]
     assert len(succeeded) == 1 and succeeded[0].details["model"] in ("H", "F")
     assert succeeded[0].details["points"] >= 50
+
+
+def test_epipolar_search_improves_the_depths_of_the_selected_pixels():
+    errors = {}
+    for enabled in (False, True):
+        config = InitConfig()
+        config.semi_dense.enabled = enabled
+        result, status, sequence, first, _ = run_initializer("smooth", init_config=config)
+        uv = np.round(result.points_uv).astype(int)
+        true = 1.0 / sequence[first].depth[uv[:, 1], uv[:, 0]]
+        features = status["points"]  # the features come first, then the selected pixels
+        scale = np.median(true[:features] / result.inverse_depths[:features])
+        relative = np.abs(result.inverse_depths * scale - true) / true
+        errors[enabled] = np.percentile(relative[features:], 90)
+        assert result.inverse_depth_variances is not None and np.all(result.inverse_depth_variances > 0)
+    assert errors[True] < 0.75 * errors[False]  # measured: 90th percentile 0.43 -> 0.25

@@ -54,11 +54,21 @@ class GeometricBAConfig:
 
 
 @dataclass
-class DepthPriorConfig:
-    """Semi-dense points (004 section 3.3): DSO selection, depths seeded from the feature points."""
+class SemiDenseConfig:
+    """Semi-dense points (004 section 3.3): DSO-selected pixels, feature depths as prior, epipolar line search
+    with SSD and Gaussian fusion of inverse depths frame to frame (Engel et al. 2013)."""
 
-    neighbours: int = 6  # feature points whose inverse depths give a selected pixel its prior (ours)
-    max_neighbour_distance_px: float = 60.0  # farther than this from every feature: no prior, not handed over (ours)
+    enabled: bool = True  # False: the pixels keep the feature prior (004's comparison "v1" without 3.3)
+    neighbours: int = 6  # feature points whose inverse depths form a pixel's prior (ours)
+    max_neighbour_distance_px: float = 60.0  # pixels farther than this from every feature are not handed over (ours)
+    prior_relative_sigma: float = 0.5  # prior sigma = 0.5 d + the spread of the neighbours' inverse depths (ours)
+    search_sigmas: float = 2.0  # search d +- 2 sigma (LSD-SLAM's interval)
+    samples: int = 48  # candidates along the epipolar segment (ours)
+    min_inverse_depth: float = 1e-4  # the interval never reaches behind the camera
+    line_sigma_px: float = 1.0  # 3.3 eq. 6: sigma_l, noise of the epipolar line position (ours: one pixel)
+    intensity_variance: float = 4.0 * 10.0  # 3.3 eq. 7: sigma_i^2 = 4 camera_pixel_noise, camera_pixel_noise = 10
+    max_ssd_per_pixel: float = 12.0 * 12.0  # DSO setting_outlierTH per pattern pixel: a worse best match is no match
+    min_segment_px: float = 0.5  # a shorter segment carries no depth information
 
 
 @dataclass
@@ -66,5 +76,5 @@ class InitConfig:
     tracks: FeatureTrackConfig = field(default_factory=FeatureTrackConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
     geometric_ba: GeometricBAConfig = field(default_factory=GeometricBAConfig)
-    depth_prior: DepthPriorConfig = field(default_factory=DepthPriorConfig)
+    semi_dense: SemiDenseConfig = field(default_factory=SemiDenseConfig)
     max_frames: int = 30  # give up on a reference after this many frames without a model (ours)

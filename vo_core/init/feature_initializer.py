@@ -6,8 +6,9 @@
    matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/init/two_view.py).
 3. Geometric bundle adjustment over every frame of the window with severe- and normal-outlier removal
    (3.2, vo_core/init/geometric_ba.py).
-4. DSO-selected pixels of the reference frame get inverse depths from the adjusted feature points around
-   them (the prior of 3.3), and the features themselves are handed over too.
+4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
+   and Gaussian fusion, the adjusted feature points around them as prior (3.3,
+   vo_core/init/semi_dense_depth.py); the features themselves are handed over too.
 
 The result is scaled as DSO expects: mean inverse depth 1 in the first keyframe.
 """
@@ -23,10 +24,12 @@ from vo_core.direct.config import SelectorConfig
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.init.config import DepthPriorConfig, InitConfig
+from vo_core.geometry.lie import se3_inverse
+from vo_core.init.config import InitConfig, SemiDenseConfig
 from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
 from vo_core.init.klt_tracks import FeatureTracks
 from vo_core.init.result import InitializationResult
+from vo_core.init.semi_dense_depth import InverseDepths, search_and_fuse
 from vo_core.init.two_view import TwoViewFailure, reconstruct
 
 
@@ -55,6 +58,7 @@ class FeatureInitializer:
         self.max_frames = config.max_frames
         self.tracks: FeatureTracks | None = None
         self.reference: ImagePyramid | None = None
+        self.pyramids: list[ImagePyramid] = []  # every frame of the window, the reference first
         self._status: dict[str, Any] = {"stage": "waiting for a reference frame"}
 
     @property
@@ -66,12 +70,14 @@ class FeatureInitializer:
 
     def set_first(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> None:
         self.reference = pyramid
+        self.pyramids = [pyramid]
         self.tracks = FeatureTracks(self.config.tracks, gray_image(pyramid), frame_index)
         self._status = {"stage": "tracking", "corners": self.tracks.num_alive}
 
     def track(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> InitializationResult | None:
         tracks = self.tracks
         alive = tracks.add(frame_index, gray_image(pyramid))
+        self.pyramids.append(pyramid)
         self._status = {"stage": "tracking", "tracks_kept": alive, "frames": tracks.num_frames}
         if alive < self.config.tracks.min_tracks:
             self._reject(f"{alive} tracks survived, fewer than {self.config.tracks.min_tracks}: new reference")
@@ -118,32 +124,52 @@ class FeatureInitializer:
             return None
         uv_features = observations[0][estimate.keep]
         idepth_features = 1.0 / estimate.points[estimate.keep, 2]
-        uv, idepth = self._with_selected_pixels(uv_features, idepth_features)
-        T_first_second, idepth, _ = normalize_scale(estimate.poses_world_cam[-1], idepth)
+        uv, depths = self._with_selected_pixels(uv_features, idepth_features, estimate.poses_world_cam)
+        T_first_second, idepth, factor = normalize_scale(estimate.poses_world_cam[-1], depths.mean)
+        ba_details["points_handed_over"] = len(uv)
+        ba_details["pixels_refined"] = int(np.sum(depths.updates[len(uv_features):] > 0))
         self._status = {"stage": "succeeded", **model_details, **ba_details}
         return InitializationResult(
             tracks.frame_indices[0], tracks.frame_indices[-1], T_first_second, uv, idepth,
-            details={**model_details, **ba_details, "frames": tracks.num_frames, "points_handed_over": len(uv)},
+            depths.variance / factor**2, details={**model_details, **ba_details, "frames": tracks.num_frames},
         )
 
-    def _with_selected_pixels(self, uv_features: np.ndarray, idepth_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The features plus DSO-selected pixels (32x32-block thresholds, median + 7) whose inverse depth is
-        the median of the nearest features' (the feature depths as prior, 004 section 3.3)."""
+    def _with_selected_pixels(
+        self, uv_features: np.ndarray, idepth_features: np.ndarray, poses_world_cam: np.ndarray
+    ) -> tuple[np.ndarray, InverseDepths]:
+        """The features plus DSO-selected pixels (32x32-block thresholds, median + 7) with inverse depths from
+        the epipolar search through the window, the nearest features' depths as prior (004 section 3.3)."""
+        config = self.config.semi_dense
         selection = PixelSelector(self.selector, self.seed).select(self.reference.levels, self.point_density)
-        uv_selected, idepth_selected = depth_prior(
-            selection.uv.astype(float), uv_features, idepth_features, self.config.depth_prior
+        uv, prior = depth_prior(selection.uv.astype(float), uv_features, idepth_features, config)
+        if config.enabled and len(uv):
+            frames = [(pyramid, se3_inverse(T)) for pyramid, T in zip(self.pyramids[1:], poses_world_cam[1:])]
+            prior = search_and_fuse(self.reference, uv, prior, frames, config)
+        # The features' own depths come from the adjustment: their variance is that of one good observation.
+        feature_variance = (config.line_sigma_px * idepth_features / self._baseline_px(poses_world_cam)) ** 2
+        depths = InverseDepths(
+            np.concatenate([idepth_features, prior.mean]), np.concatenate([feature_variance, prior.variance]),
+            np.concatenate([np.full(len(uv_features), len(poses_world_cam) - 1), prior.updates]),
         )
-        return np.vstack([uv_features, uv_selected]), np.concatenate([idepth_features, idepth_selected])
+        return np.vstack([uv_features, uv]), depths
+
+    def _baseline_px(self, poses_world_cam: np.ndarray) -> float:
+        """How many pixels one unit of inverse depth moves a point between the first and last frame: f |t|."""
+        return float(self.camera.fx * np.linalg.norm(poses_world_cam[-1][:3, 3]))
 
 
 def depth_prior(
-    uv: np.ndarray, uv_features: np.ndarray, idepth_features: np.ndarray, config: DepthPriorConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """(pixels, inverse depths) of the pixels ``uv`` close enough to the features to inherit their depth."""
+    uv: np.ndarray, uv_features: np.ndarray, idepth_features: np.ndarray, config: SemiDenseConfig
+) -> tuple[np.ndarray, InverseDepths]:
+    """The pixels ``uv`` close enough to the features, with the prior N(median, sigma^2) of the nearest
+    features' inverse depths, sigma = relative sigma x median + their spread."""
     count = min(config.neighbours, len(uv_features))
     if count == 0 or len(uv) == 0:
-        return np.empty((0, 2)), np.empty(0)
+        return np.empty((0, 2)), InverseDepths(np.empty(0), np.empty(0), np.empty(0, int))
     distance, nearest = cKDTree(uv_features).query(uv, k=count)
     distance, nearest = distance.reshape(len(uv), count), nearest.reshape(len(uv), count)
     near = distance[:, 0] <= config.max_neighbour_distance_px
-    return uv[near], np.median(idepth_features[nearest[near]], axis=1)
+    neighbours = idepth_features[nearest[near]]
+    median = np.median(neighbours, axis=1)
+    sigma = config.prior_relative_sigma * median + neighbours.std(axis=1)
+    return uv[near], InverseDepths(median, sigma**2, np.zeros(int(near.sum()), int))
