@@ -13,11 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+import numba
 import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, huber_weight
-from vo_core.direct.photometric_kernels import epipolar_search
+from vo_core.direct.photometric_kernels import bilinear3, epipolar_search
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
@@ -170,31 +171,6 @@ class ImmaturePoints:
         self.last_uv[index] = np.column_stack([u_min[mask] + u_max[mask], v_min[mask] + v_max[mask]]) * 0.5
         self.pixel_interval[index] = dist[mask]
 
-    def _pattern_energy(self, frame, index, u, v, rotated, affine, huber, refine=False):
-        """Huber energy of the pattern at (u, v) (any leading shape matching ``index``).
-
-        For the Gauss-Newton refinement (``refine``) the terms carry the gradient-dependent pattern weights
-        and the image gradients are returned too; the discrete search needs intensities only."""
-        factor, offset = affine
-        pattern_u, pattern_v = u[..., None] + rotated[..., 0], v[..., None] + rotated[..., 1]
-        if refine:
-            hit = frame.sample(pattern_u, pattern_v)
-            intensity = hit[..., 0]
-        else:
-            hit = None
-            intensity = frame.sample_intensity(pattern_u, pattern_v)
-        color = self.color[index].reshape(index.shape + (1,) * (u.ndim - 1) + (len(PATTERN),))
-        residual = intensity - (factor * color + offset)
-        missing = ~np.isfinite(residual)
-        residual = np.where(missing, 0.0, residual)
-        w = huber_weight(residual, huber)
-        term = w * residual**2 * (2.0 - w)
-        if refine:
-            pattern_weight = self.weight[index].reshape(color.shape)
-            term = term * pattern_weight**2
-        energy = np.sum(np.where(missing, MISSING_ENERGY, term), axis=-1)
-        return energy, residual, w, hit, missing
-
     def _search(self, index, frame, KRKi, Kt, pr, u_min, v_min, dx, dy, length, error_px, affine, config) -> None:
         """Discrete search along the segment, quality, Gauss-Newton refinement and the new interval."""
         num_steps = np.minimum((1.9999 + length / config.trace_stepsize).astype(int), config.max_steps - 1)
@@ -251,38 +227,65 @@ class ImmaturePoints:
 
     def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
         """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""
-        n = len(index)
-        backup_u, backup_v = best_u.copy(), best_v.copy()
-        step_back = np.zeros(n)
-        best_energy = np.full(n, MISSING_ENERGY)
-        running = np.ones(n, dtype=bool)
-        for _ in range(config.trace_gn_iterations):
-            r = np.flatnonzero(running)
-            if len(r) == 0:
+        factor, offset = affine
+        return refine_along_line(
+            frame.packed, best_u, best_v, dx, dy, rotated, self.color[index], self.weight[index] ** 2,
+            float(factor), float(offset), config.huber_threshold, MISSING_ENERGY, config.trace_gn_iterations,
+            config.trace_gn_threshold,
+        )
+
+
+@numba.njit(cache=True, nogil=True)
+def refine_along_line(packed, start_u, start_v, dx, dy, rotated, color, weight_sq, factor, offset, huber,
+                      missing_energy, iterations, threshold):
+    """traceOn's Gauss-Newton refinement of each point's position along its epipolar direction (dx, dy).
+
+    The energy is the pattern's Huber energy with the gradient-dependent weights ``weight_sq``; a pattern
+    pixel outside the image costs ``missing_energy``. A step that lowers the energy is taken (clamped to
+    +-0.5 px, H = 1 + sum w (d r / d step)^2); one that raises it goes back half way from the last good
+    position. A point stops when its last step is below ``threshold``. Returns the positions and energies.
+    One compiled loop per point: in numpy, the few iterations over all points were most of the tracing time.
+    """
+    n = len(start_u)
+    best_u = start_u.copy()
+    best_v = start_v.copy()
+    best_energy = np.full(n, missing_energy)
+    for i in range(n):
+        backup_u, backup_v = best_u[i], best_v[i]
+        step_back = 0.0
+        for _ in range(iterations):
+            energy = 0.0
+            H = 1.0
+            b = 0.0
+            for k in range(rotated.shape[0]):
+                pu = best_u[i] + rotated[k, 0]
+                pv = best_v[i] + rotated[k, 1]
+                if not (pu >= 0.0 and pv >= 0.0 and pu < packed.shape[1] - 1 and pv < packed.shape[0] - 1):
+                    energy += missing_energy
+                    continue
+                intensity, gx, gy = bilinear3(packed, pu, pv)
+                residual = intensity - (factor * color[i, k] + offset)
+                magnitude = abs(residual)
+                w = 1.0 if magnitude <= huber else huber / magnitude
+                energy += weight_sq[i, k] * w * residual * residual * (2.0 - w)
+                d_residual = dx[i] * gx + dy[i] * gy
+                H += w * d_residual * d_residual
+                b += w * residual * d_residual
+            if energy > best_energy[i]:
+                step_back *= 0.5
+                best_u[i] = backup_u + step_back * dx[i]
+                best_v[i] = backup_v + step_back * dy[i]
+            else:
+                step = -b / H
+                step = min(max(step, -0.5), 0.5) if np.isfinite(step) else 0.0
+                backup_u, backup_v = best_u[i], best_v[i]
+                step_back = step
+                best_u[i] += step * dx[i]
+                best_v[i] += step * dy[i]
+                best_energy[i] = energy
+            if not abs(step_back) >= threshold:
                 break
-            energy, residual, w, hit, missing = self._pattern_energy(
-                frame, index[r], best_u[r], best_v[r], rotated, affine, config.huber_threshold, refine=True
-            )
-            d_residual = np.where(missing, 0.0, dx[r, None] * hit[..., 1] + dy[r, None] * hit[..., 2])
-            H = 1.0 + np.sum(w * d_residual**2, axis=1)
-            b = np.sum(w * residual * d_residual, axis=1)
-            worse = energy > best_energy[r]
-            # Worse: go back half way from the last good position.
-            wr = r[worse]
-            step_back[wr] *= 0.5
-            best_u[wr] = backup_u[wr] + step_back[wr] * dx[wr]
-            best_v[wr] = backup_v[wr] + step_back[wr] * dy[wr]
-            # Better: take a (clamped) Gauss-Newton step.
-            br = r[~worse]
-            step = np.clip(-b[~worse] / H[~worse], -0.5, 0.5)
-            step = np.where(np.isfinite(step), step, 0.0)
-            backup_u[br], backup_v[br] = best_u[br], best_v[br]
-            step_back[br] = step
-            best_u[br] += step * dx[br]
-            best_v[br] += step * dy[br]
-            best_energy[br] = energy[~worse]
-            running[r] = np.abs(step_back[r]) >= config.trace_gn_threshold
-        return best_u, best_v, best_energy
+    return best_u, best_v, best_energy
 
 
 @dataclass
