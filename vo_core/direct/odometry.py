@@ -347,11 +347,16 @@ class DirectOdometry:
             getattr(frame, "exposure_ms", None),
             keyframe_id=self.keyframes[-1].keyframe_id + 1 if self.keyframes else 0,
         )
-        dropped = self._slide_window(keyframe, frame, result)
+        # makeKeyFrame's order: flag the keyframes that will leave, optimize the window with them and the new
+        # one, then marginalize them (so the prior links them to the newest keyframe too).
+        dropped = self._keyframes_to_marginalize(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
         if self.config.window.enabled and len(self.keyframes) >= 2:
             self._optimize_window(frame, result)
+        for frame_index in dropped:
+            self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
+                              frame, result)
         selection = self.selector.select(pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
@@ -385,9 +390,9 @@ class DirectOdometry:
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
 
-    def _slide_window(self, new_keyframe: Keyframe, frame, result: FrameResult) -> list[int]:
-        """The keyframes DSO marginalizes leave the window; with the window optimization their information
-        (and that of the points they host) stays as the prior."""
+    def _keyframes_to_marginalize(self, new_keyframe: Keyframe) -> list[int]:
+        """flagFramesForMarginalization: the frame indices of the keyframes that leave the window once
+        ``new_keyframe`` joins it."""
         if not self.keyframes:
             return []
         in_view = np.array([self._fraction_in_view(k, new_keyframe) for k in self.keyframes])
@@ -402,13 +407,11 @@ class DirectOdometry:
             np.array([k.T_world_cam[:3, 3] for k in self.keyframes]),
             in_view, log_brightness, self.config.keyframes,
         )
-        dropped = [self.keyframes[i].frame_index for i in drop]
-        for frame_index in dropped:
-            self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
-                              frame, result)
-        return dropped
+        return [self.keyframes[i].frame_index for i in drop]
 
     def _marginalize(self, index: int, frame, result: FrameResult) -> None:
+        """Keyframe ``index`` leaves the window; with the window optimization its information (and that of the
+        points it hosts) stays as the prior."""
         window = self.config.window
         leaving = self.keyframes[index]
         points = 0

@@ -83,6 +83,7 @@ class WindowOptimizer:
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
         system = self._linearize(keyframes, hosts, poses, affines, idepth, prior)
         energy_before = energy = system.energy
+        first = system
         lam = self.config.initial_lambda
         iterations = 0
         for iterations in range(1, self.config.max_iterations + 1):
@@ -90,7 +91,7 @@ class WindowOptimizer:
             trial_poses = [se3_exp(step_keyframes[i, :6]) @ T for i, T in enumerate(poses)]
             trial_affines = [ab + step_keyframes[i, 6:] for i, ab in enumerate(affines)]
             trial_idepth = np.maximum(idepth + step_points, self.config.min_inverse_depth)
-            trial = self._linearize(keyframes, hosts, trial_poses, trial_affines, trial_idepth, prior)
+            trial = self._linearize(keyframes, hosts, trial_poses, trial_affines, trial_idepth, prior, start=first)
             if trial.energy < energy:
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
@@ -136,12 +137,16 @@ class WindowOptimizer:
             offset += len(keyframe.active_idepth)
         return hosts
 
-    def _linearize(self, keyframes, hosts, poses, affines, idepth, prior, only_host: int | None = None) -> "_System":
+    def _linearize(self, keyframes, hosts, poses, affines, idepth, prior, only_host: int | None = None,
+                   start: "_System | None" = None) -> "_System":
+        """The Gauss-Newton system and energy at a state. A residual that was in view at the ``start`` of the
+        optimization and is out now is charged the outlier energy: a step must not look better by pushing points
+        out of the images (DSO keeps the residual set of an optimization fixed)."""
         n_kf = len(keyframes)
         size = PARAMS_PER_KEYFRAME * n_kf
         system = _System(np.zeros((size, size)), np.zeros(size), np.zeros((size, len(idepth))),
                          np.zeros(len(idepth)), np.zeros(len(idepth)), np.zeros(len(idepth), int),
-                         np.zeros(len(idepth), int), 0.0, 0)
+                         np.zeros(len(idepth), int), 0.0, 0, {})
         for h, host in enumerate(hosts):
             count = len(keyframes[h].active_idepth)
             if count == 0 or (only_host is not None and h != only_host):
@@ -150,6 +155,9 @@ class WindowOptimizer:
             for t, target in enumerate(keyframes):
                 if t != h:
                     self._add_pair(system, keyframes[h], target, h, t, host, points, poses, affines, idepth)
+                    if start is not None:
+                        left_view = (system.status[h, t] == POINT_OUT) & (start.status[h, t] == POINT_IN)
+                        system.energy += self.outlier_energy * np.count_nonzero(left_view)
         frame_ids = [k.frame_index for k in keyframes]
         system.energy += prior.add_to(system.H_kk, system.b_k, frame_ids, poses, affines)
         return system
@@ -166,6 +174,7 @@ class WindowOptimizer:
             self.weight_component, True,
         )
         system.energy += energy
+        system.status[h, t] = status
         system.residuals += int(np.count_nonzero(status == POINT_IN))
         system.inliers[points] += status == POINT_IN
         system.outliers[points] += status == POINT_OUTLIER
@@ -233,6 +242,7 @@ class _System:
     outliers: np.ndarray
     energy: float
     residuals: int
+    status: dict[tuple[int, int], np.ndarray]  # (host, target) -> each point's POINT_IN / OUT / OUTLIER
 
 
 def _block(index: int) -> np.ndarray:
