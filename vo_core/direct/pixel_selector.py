@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from vo_core.direct.config import SelectorConfig
@@ -28,12 +29,6 @@ class Selection:
     kind: np.ndarray  # (N,) 1, 2 or 4: pixel found at level 0, 1 or 2 (DSO's my_type)
 
 
-def _block_view(array: np.ndarray, cell: int) -> np.ndarray:
-    """(H, W) with H, W multiples of cell -> (H/cell, W/cell, cell*cell)."""
-    h, w = array.shape
-    return array.reshape(h // cell, cell, w // cell, cell).transpose(0, 2, 1, 3).reshape(h // cell, w // cell, -1)
-
-
 def _sum_3x3(values: np.ndarray) -> np.ndarray:
     padded = np.pad(values, 1)
     h, w = values.shape
@@ -45,21 +40,41 @@ def gradient_thresholds(grad_sq: np.ndarray, config: SelectorConfig) -> np.ndarr
     h, w = grad_sq.shape
     block = config.block_size
     h_blocks, w_blocks = max(h // block, 1), max(w // block, 1)
-    magnitude = np.minimum(np.sqrt(grad_sq).astype(np.int32), config.hist_max_gradient).astype(float)
-    magnitude[0, :] = magnitude[-1, :] = magnitude[:, 0] = magnitude[:, -1] = np.nan  # DSO skips the border
-    covered = np.full((h_blocks * block, w_blocks * block), np.nan)
-    rows, cols = min(h, covered.shape[0]), min(w, covered.shape[1])
-    covered[:rows, :cols] = magnitude[:rows, :cols]
-    blocks = np.sort(_block_view(covered, block), axis=2)  # NaN sorts last
-    count = np.sum(~np.isnan(blocks), axis=2)
-    # computeHistQuantil: the first histogram bin whose cumulative count exceeds count * q + 0.5.
-    rank = np.minimum((count * config.hist_quantile + 0.5).astype(int), np.maximum(count - 1, 0))
-    quantile = np.take_along_axis(blocks, rank[:, :, None], axis=2)[:, :, 0]
-    block_threshold = np.nan_to_num(quantile, nan=config.hist_max_gradient) + config.hist_add
+    magnitude = np.minimum(np.sqrt(grad_sq).astype(np.int32), config.hist_max_gradient)
+    quantile = _block_quantiles(magnitude, block, h_blocks, w_blocks, config.hist_max_gradient, config.hist_quantile)
+    block_threshold = quantile + config.hist_add
     smoothed = _sum_3x3(block_threshold) / _sum_3x3(np.ones_like(block_threshold))
     block_rows = np.minimum(np.arange(h) // block, h_blocks - 1)
     block_cols = np.minimum(np.arange(w) // block, w_blocks - 1)
     return (smoothed**2)[np.ix_(block_rows, block_cols)]
+
+
+@numba.njit(cache=True, nogil=True)
+def _block_quantiles(magnitude, block, h_blocks, w_blocks, max_gradient, quantile):
+    """makeHists: per block the ``quantile`` of the integer gradient magnitudes (0..max_gradient) by histogram,
+    the image border skipped, ``max_gradient`` for a block without pixels. computeHistQuantil: the first bin
+    whose cumulative count exceeds count * q + 0.5 (at most the last pixel's)."""
+    h, w = magnitude.shape
+    out = np.empty((h_blocks, w_blocks))
+    histogram = np.zeros(max_gradient + 1, np.int64)
+    for block_row in range(h_blocks):
+        for block_col in range(w_blocks):
+            histogram[:] = 0
+            for y in range(max(block_row * block, 1), min((block_row + 1) * block, h - 1)):
+                for x in range(max(block_col * block, 1), min((block_col + 1) * block, w - 1)):
+                    histogram[magnitude[y, x]] += 1
+            count = histogram.sum()
+            out[block_row, block_col] = max_gradient
+            if count == 0:
+                continue
+            rank = min(int(count * quantile + 0.5), count - 1)
+            cumulative = 0
+            for value in range(max_gradient + 1):
+                cumulative += histogram[value]
+                if cumulative > rank:
+                    out[block_row, block_col] = value
+                    break
+    return out
 
 
 class PixelSelector:
@@ -104,13 +119,7 @@ class PixelSelector:
         level0 = pyramid[0]
         h, w = level0.intensity.shape
         big = 4 * pot
-        height, width = -(-h // big) * big, -(-w // big) * big
-
-        def padded(values: np.ndarray, fill: float) -> np.ndarray:
-            out = np.full((height, width), fill, dtype=float)
-            out[:h, :w] = values
-            return out
-
+        height, width = -(-h // big) * big, -(-w // big) * big  # whole cells of the coarsest type
         ys, xs = np.arange(h), np.arange(w)
         inside = np.zeros((h, w), dtype=bool)
         inside[config.border : h - config.border, config.border : w - config.border - 1] = True
@@ -123,32 +132,42 @@ class PixelSelector:
                 grad_sq_levels.append(gl[np.ix_(rows, cols)])
             else:
                 grad_sq_levels.append(np.zeros((h, w)))
-        gx = padded(level0.packed[:, :, 1], 0.0)
-        gy = padded(level0.packed[:, :, 2], 0.0)
-        taken = np.zeros((height, width), dtype=bool)
-        uv_parts, kind_parts = [], []
+        chosen = np.zeros((h, w), dtype=np.int8)  # the type of the pixel taken there, 0 where none
         for level, kind in enumerate(LEVEL_TYPES):
             cell = pot * kind
             weight = config.grad_downweight_per_level ** (level * (level + 1) // 2)  # 1, 0.75, 0.75^3 as DSO
-            passes = grad_sq_levels[level] > thresholds * weight * threshold_factor
-            candidate = padded(passes & inside, False).astype(bool)
+            candidate = (grad_sq_levels[level] > thresholds * weight * threshold_factor) & inside
             # A random direction per cell spreads the gradient directions of the selected pixels.
             angle = self.rng.uniform(0.0, np.pi, size=(height // cell, width // cell))
-            direction_u = np.repeat(np.repeat(np.cos(angle), cell, 0), cell, 1)
-            direction_v = np.repeat(np.repeat(np.sin(angle), cell, 0), cell, 1)
-            score = np.where(candidate, np.abs(gx * direction_u + gy * direction_v), 0.0)
-            blocked = _block_view(taken, cell).any(axis=2)  # a finer level already chose in this cell
-            cells = _block_view(score, cell)
-            best = cells.argmax(axis=2)
-            chosen = (np.take_along_axis(cells, best[:, :, None], axis=2)[:, :, 0] > 0.0) & ~blocked
-            cell_rows, cell_cols = np.nonzero(chosen)
-            within = best[cell_rows, cell_cols]
-            rows = cell_rows * cell + within // cell
-            cols = cell_cols * cell + within % cell
-            taken[rows, cols] = True
-            uv_parts.append(np.stack([cols, rows], axis=1))
-            kind_parts.append(np.full(len(rows), kind))
-        uv = np.concatenate(uv_parts)
-        kind = np.concatenate(kind_parts)
-        order = np.lexsort((uv[:, 0], uv[:, 1]))
-        return Selection(uv[order], kind[order])
+            _take_best_in_cells(candidate, level0.packed, np.cos(angle), np.sin(angle), cell, kind, chosen)
+        rows, cols = np.nonzero(chosen)  # row-major: sorted by (v, u)
+        return Selection(np.stack([cols, rows], axis=1), chosen[rows, cols].astype(np.int64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _take_best_in_cells(candidate, packed, cos_angle, sin_angle, cell, kind, chosen):
+    """select() for one cell size: in each cell where no finer level chose a pixel, the candidate with the
+    largest |gradient . direction| (the first one in row-major order on ties) is chosen as ``kind``.
+
+    One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size."""
+    h, w = candidate.shape
+    for cell_row in range(cos_angle.shape[0]):
+        for cell_col in range(cos_angle.shape[1]):
+            y0, x0 = cell_row * cell, cell_col * cell
+            y1, x1 = min(y0 + cell, h), min(x0 + cell, w)
+            blocked = False
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    blocked |= chosen[y, x] != 0
+            if blocked:
+                continue
+            best, best_y, best_x = 0.0, -1, -1
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    if candidate[y, x]:
+                        score = abs(packed[y, x, 1] * cos_angle[cell_row, cell_col]
+                                    + packed[y, x, 2] * sin_angle[cell_row, cell_col])
+                        if score > best:
+                            best, best_y, best_x = score, y, x
+            if best_y >= 0:
+                chosen[best_y, best_x] = kind
