@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
-from vo_core.direct.coarse_tracker import PATTERN, huber_weight
+from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.photometric_kernels import bilinear3, epipolar_search
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
 
@@ -356,7 +356,7 @@ def optimize_inverse_depths(
     in_bounds = np.ones((n, len(targets)), dtype=bool)  # a target once out of bounds stays out (ResState OOB)
     camera = targets[0].level.camera  # one camera for all frames
     pattern_uv = points.uv[:, None, :] + PATTERN[None]
-    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3).astype(np.float32)
+    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
     energy, H, b, inlier = _depth_system(points, rays, targets, idepth, in_bounds, first_outlier_slack, config)
     usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
     lam = np.full(n, 0.1)
@@ -382,40 +382,62 @@ def optimize_inverse_depths(
 def _depth_system(points: PatternPoints, rays, targets, idepth, in_bounds, outlier_slack, config):
     """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target.
 
-    ``rays`` (n, 8, 3) float32 are the host's K^-1 (u, v, 1) of the pattern pixels; ``in_bounds`` (n, targets)
+    ``rays`` (n, 8, 3) are the host's K^-1 (u, v, 1) of the pattern pixels; ``in_bounds`` (n, targets)
     is updated: a pattern leaving a target once is not evaluated there again."""
     n = len(idepth)
     energy, H, b = np.zeros(n), np.zeros(n), np.zeros(n)
     inlier = np.zeros((n, len(targets)), dtype=bool)
-    weight_sq = (points.weight**2).astype(np.float32)
+    weight_sq = points.weight**2
     threshold = points.energy_threshold * outlier_slack
-    depth32 = idepth.astype(np.float32)
     for j, target in enumerate(targets):
-        rows = np.flatnonzero(in_bounds[:, j])
-        if len(rows) == 0:
-            continue
         camera = target.level.camera
-        R, t = target.T_target_host[:3, :3].astype(np.float32), target.T_target_host[:3, 3].astype(np.float32)
-        warped = rays[rows] @ R.T
-        warped += depth32[rows, None, None] * t
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inverse_z = 1.0 / warped[..., 2]
-        u, v = warped[..., 0] * inverse_z, warped[..., 1] * inverse_z
-        Ku, Kv = camera.fx * u + camera.cx, camera.fy * v + camera.cy
-        inside = (Ku >= 1) & (Kv >= 1) & (Ku <= camera.width - 2) & (Kv <= camera.height - 2) & (inverse_z > 0)
-        hit = target.level.sample(np.where(inside, Ku, -10.0), np.where(inside, Kv, -10.0))
-        ok = np.all(inside & np.isfinite(hit[..., 0]), axis=1)
-        in_bounds[rows, j] = ok
-        rows, hit, u, v, inverse_z = rows[ok], hit[ok], u[ok], v[ok], inverse_z[ok]
         factor, offset = target.affine
-        residual = hit[..., 0] - (factor * points.color[rows] + offset)
-        w = huber_weight(residual, config.huber_threshold)
-        e = np.sum(weight_sq[rows] * w * residual**2 * (2.0 - w), axis=1)
-        d_u, d_v = camera.fx * (t[0] - t[2] * u) * inverse_z, camera.fy * (t[1] - t[2] * v) * inverse_z
-        d_idepth = hit[..., 1] * d_u + hit[..., 2] * d_v  # d residual / d inverse depth
-        hw = w * weight_sq[rows]
-        H[rows] += np.sum(hw * d_idepth**2, axis=1)
-        b[rows] += np.sum(hw * residual * d_idepth, axis=1)
-        inlier[rows, j] = e <= threshold[rows]
-        energy[rows] += np.minimum(e, threshold[rows])
+        _add_depth_terms(
+            rays, idepth, points.color, weight_sq, threshold, target.T_target_host[:3, :3],
+            target.T_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+            target.level.packed, float(factor), float(offset), config.huber_threshold, in_bounds[:, j],
+            inlier[:, j], energy, H, b,
+        )
     return energy, H, b, inlier
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_depth_terms(rays, idepth, color, weight_sq, threshold, R, t, intrinsics, packed, factor, offset, huber,
+                     in_bounds, inlier, energy, H, b):
+    """One target's part of ``_depth_system``, added into ``energy``, ``H``, ``b``; sets ``inlier`` and clears
+    ``in_bounds`` where the pattern leaves the image (1 px margin) or the point falls behind the camera."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    height, width = packed.shape[0], packed.shape[1]
+    pattern = rays.shape[1]
+    residuals = np.empty(pattern)
+    d_idepth = np.empty(pattern)
+    for i in range(len(idepth)):
+        if not in_bounds[i]:
+            continue
+        for k in range(pattern):
+            x = R[0, 0] * rays[i, k, 0] + R[0, 1] * rays[i, k, 1] + R[0, 2] * rays[i, k, 2] + idepth[i] * t[0]
+            y = R[1, 0] * rays[i, k, 0] + R[1, 1] * rays[i, k, 1] + R[1, 2] * rays[i, k, 2] + idepth[i] * t[1]
+            z = R[2, 0] * rays[i, k, 0] + R[2, 1] * rays[i, k, 1] + R[2, 2] * rays[i, k, 2] + idepth[i] * t[2]
+            inverse_z = 1.0 / z if z != 0.0 else -1.0
+            u, v = x * inverse_z, y * inverse_z
+            Ku, Kv = fx * u + cx, fy * v + cy
+            if not (inverse_z > 0.0 and Ku >= 1.0 and Kv >= 1.0 and Ku <= width - 2 and Kv <= height - 2):
+                in_bounds[i] = False
+                break
+            intensity, gx, gy = bilinear3(packed, Ku, Kv)
+            residuals[k] = intensity - (factor * color[i, k] + offset)
+            # d residual / d inverse depth through the projection (u, v) = (x, y) / z
+            d_idepth[k] = gx * fx * (t[0] - t[2] * u) * inverse_z + gy * fy * (t[1] - t[2] * v) * inverse_z
+        if not in_bounds[i]:
+            continue
+        e = 0.0
+        for k in range(pattern):
+            residual = residuals[k]
+            magnitude = abs(residual)
+            w = 1.0 if magnitude <= huber else huber / magnitude
+            e += weight_sq[i, k] * w * residual * residual * (2.0 - w)
+            hw = w * weight_sq[i, k]
+            H[i] += hw * d_idepth[k] * d_idepth[k]
+            b[i] += hw * residual * d_idepth[k]
+        inlier[i] = e <= threshold[i]
+        energy[i] += min(e, threshold[i])
