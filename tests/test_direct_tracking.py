@@ -8,8 +8,8 @@ import pytest
 from test_direct_support import PlaneScene, pose, small_camera
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.coarse_tracker import CoarseTracker
-from vo_core.direct.immature_point import ImmaturePoints
-from vo_core.direct.pixel_selector import PixelSelector
+from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
+from vo_core.direct.pixel_selector import PixelSelector, gradient_thresholds
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log
 
@@ -91,7 +91,46 @@ def test_pixel_selection_spreads_over_the_image(pair):
     assert len(occupied) == 16  # every cell of a 4x4 grid has points
 
 
-def test_immature_point_depths_converge_to_the_truth():
+def test_pyramid_levels_are_block_means_with_central_difference_gradients():
+    image = np.random.default_rng(3).uniform(0, 255, (61, 83)).astype(np.float32)  # odd: last row/column dropped
+    pyramid = ImagePyramid(image, small_camera(83, 61), CONFIG.pyramid)
+    expected = image
+    for level in pyramid.levels:
+        np.testing.assert_allclose(level.intensity, expected, rtol=1e-6)
+        gx, gy = level.packed[..., 1], level.packed[..., 2]
+        np.testing.assert_allclose(gx[1:-1, 1:-1], 0.5 * (expected[1:-1, 2:] - expected[1:-1, :-2]), atol=1e-4)
+        np.testing.assert_allclose(gy[1:-1, 1:-1], 0.5 * (expected[2:, 1:-1] - expected[:-2, 1:-1]), atol=1e-4)
+        assert not gx[:, [0, -1]].any() and not gy[[0, -1], :].any()
+        h, w = expected.shape[0] // 2 * 2, expected.shape[1] // 2 * 2
+        expected = expected[:h, :w].reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
+
+
+def test_gradient_thresholds_are_smoothed_block_medians():
+    config = CONFIG.selector
+    grad_sq = np.random.default_rng(4).gamma(1.0, 300.0, (100, 140)).astype(np.float32)  # partial last blocks
+    magnitude = np.minimum(np.sqrt(grad_sq).astype(int), config.hist_max_gradient)
+    block = config.block_size
+    medians = np.empty((100 // block, 140 // block))
+    for row in range(medians.shape[0]):
+        for col in range(medians.shape[1]):
+            values = magnitude[row * block : (row + 1) * block, col * block : (col + 1) * block]
+            values = values[(row == 0) :, (col == 0) :]  # the image's first row and column are skipped
+            ordered = np.sort(values.ravel())
+            medians[row, col] = ordered[min(int(len(ordered) * config.hist_quantile + 0.5), len(ordered) - 1)]
+    padded = np.pad(medians + config.hist_add, 1)
+    counts = np.pad(np.ones_like(medians), 1)
+    smoothed = sum(padded[dy : dy + medians.shape[0], dx : dx + medians.shape[1]] for dy in range(3) for dx in range(3))
+    smoothed /= sum(counts[dy : dy + medians.shape[0], dx : dx + medians.shape[1]] for dy in range(3) for dx in range(3))
+    thresholds = gradient_thresholds(grad_sq, config)
+    assert thresholds.shape == grad_sq.shape
+    assert np.allclose(thresholds[40, 70], smoothed[1, 2] ** 2)
+    assert np.allclose(thresholds[99, 139], smoothed[-1, -1] ** 2)  # the partial blocks take the last block's
+    assert np.allclose(thresholds[: medians.shape[0] * block : block, : medians.shape[1] * block : block], smoothed**2)
+
+
+@pytest.fixture(scope="module")
+def traced_points():
+    """Immature points of a plane scene traced through five frames: (points, true inverse depths, frames)."""
     camera = small_camera(320, 240)
     scene = PlaneScene(seed=1)
     image, depth = scene.render(camera, pose())
@@ -99,10 +138,17 @@ def test_immature_point_depths_converge_to_the_truth():
     selection = PixelSelector(CONFIG.selector, seed=0).select(host, 1000)
     points = ImmaturePoints.create(host, selection.uv, selection.kind, CONFIG.immature)
     true_idepth = 1.0 / depth[points.uv[:, 1].astype(int), points.uv[:, 0].astype(int)]
+    frames = []
     for i in range(1, 6):
         T_world_frame = pose((0.0, 0.003 * i, 0.0), (0.03 * i, 0.005 * i, 0.01 * i))
         frame = ImagePyramid(scene.render(camera, T_world_frame)[0], camera, CONFIG.pyramid)
         points.trace(frame[0], se3_inverse(T_world_frame), (1.0, 0.0), CONFIG.immature)
+        frames.append((frame, T_world_frame))
+    return points, true_idepth, frames
+
+
+def test_immature_point_depths_converge_to_the_truth(traced_points):
+    points, true_idepth, _ = traced_points
     ready = points.activatable(CONFIG.immature)
     relative_error = np.abs(points.idepth[ready] - true_idepth[ready]) / true_idepth[ready]
     assert ready.sum() > 0.5 * len(points)
@@ -112,3 +158,16 @@ def test_immature_point_depths_converge_to_the_truth():
     low, high, truth = points.idepth_min[ready], points.idepth_max[ready], true_idepth[ready]
     inside = (low <= truth * 1.01) & (truth * 0.99 <= high)
     assert inside.mean() > 0.8
+
+
+def test_activation_pulls_inverse_depths_to_the_truth_from_five_percent_off(traced_points):
+    points, true_idepth, frames = traced_points
+    ready = np.flatnonzero(points.activatable(CONFIG.immature))
+    start = points.subset(np.ones(len(points), dtype=bool))
+    start.idepth_min, start.idepth_max = 1.05 * points.idepth_min, 1.05 * points.idepth_max
+    targets = [ActivationTarget(frame[0], se3_inverse(T_world_frame), (1.0, 0.0)) for frame, T_world_frame in frames]
+    idepth, usable = optimize_for_activation(start, ready, targets, CONFIG.immature)
+    assert usable.mean() > 0.9
+    relative_error = np.abs(idepth[usable] - true_idepth[ready][usable]) / true_idepth[ready][usable]
+    assert np.median(relative_error) < 0.01
+    assert np.percentile(relative_error, 90) < 0.03
