@@ -147,7 +147,8 @@ def summarize(records: list[dict | None]) -> None:
             if not rows or not any(values):
                 continue
             unit = "" if stage in ("hypotheses", "residual_evals") else " ms"
-            print(f"    {stage:15s}{np.mean(values):8.2f}{np.median(values):8.2f}{np.percentile(values, 90):8.2f}{unit}")
+            summary = np.mean(values), np.median(values), np.percentile(values, 90)
+            print(f"    {stage:15s}" + "".join(f"{value:8.2f}" for value in summary) + unit)
 
 
 def pose_difference(poses_a: list, poses_b: list) -> float:
@@ -182,7 +183,8 @@ def profile_sequence(folder: Path, args) -> None:
         if first_poses is None:
             first_poses = poses
         else:
-            print(f"  repeat {repeat}: largest position difference to the first run {pose_difference(first_poses, poses):.3g}")
+            difference = pose_difference(first_poses, poses)
+            print(f"  repeat {repeat}: largest position difference to the first run {difference:.3g}")
     report_accuracy(sequence, frames, first_poses)
     summarize(median_over_repeats(runs))
     if args.save:

@@ -117,10 +117,13 @@ def test_gradient_thresholds_are_smoothed_block_medians():
             values = values[(row == 0) :, (col == 0) :]  # the image's first row and column are skipped
             ordered = np.sort(values.ravel())
             medians[row, col] = ordered[min(int(len(ordered) * config.hist_quantile + 0.5), len(ordered) - 1)]
-    padded = np.pad(medians + config.hist_add, 1)
-    counts = np.pad(np.ones_like(medians), 1)
-    smoothed = sum(padded[dy : dy + medians.shape[0], dx : dx + medians.shape[1]] for dy in range(3) for dx in range(3))
-    smoothed /= sum(counts[dy : dy + medians.shape[0], dx : dx + medians.shape[1]] for dy in range(3) for dx in range(3))
+    rows, cols = medians.shape
+
+    def sum_3x3(values):
+        padded = np.pad(values, 1)
+        return sum(padded[dy : dy + rows, dx : dx + cols] for dy in range(3) for dx in range(3))
+
+    smoothed = sum_3x3(medians + config.hist_add) / sum_3x3(np.ones_like(medians))
     thresholds = gradient_thresholds(grad_sq, config)
     assert thresholds.shape == grad_sq.shape
     assert np.allclose(thresholds[40, 70], smoothed[1, 2] ** 2)

@@ -1,4 +1,5 @@
-"""DSO's pixel selection (PixelSelector2.cpp, DSO paper section 3.2 / FDMO 4.2.1), vectorized.
+"""DSO's pixel selection (PixelSelector2.cpp, DSO paper section 3.2 / FDMO 4.2.1), per-block and per-cell loops
+compiled (numba).
 
 1. Region-adaptive threshold: per 32x32 block the median gradient magnitude + 7, smoothed over the 3x3
    neighbouring blocks (makeHists).
