@@ -95,7 +95,7 @@ def test_epipolar_search_improves_the_depths_of_the_selected_pixels():
         result, status, sequence, first, _ = run_initializer("smooth", init_config=config)
         uv = np.round(result.points_uv).astype(int)
         true = 1.0 / sequence[first].depth[uv[:, 1], uv[:, 0]]
-        features = status["points"]  # the features come first, then the selected pixels
+        features = status["features_handed_over"]  # the features come first, then the selected pixels
         scale = np.median(true[:features] / result.inverse_depths[:features])
         relative = np.abs(result.inverse_depths * scale - true) / true
         errors[enabled] = np.percentile(relative[features:], 90)

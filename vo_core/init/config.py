@@ -72,9 +72,24 @@ class SemiDenseConfig:
 
 
 @dataclass
+class PhotometricFilterConfig:
+    """Student-t fit of the photometric residuals and outlier removal (004 section 3.4)."""
+
+    enabled: bool = True
+    degrees_of_freedom: float = 5.0  # 3.4: nu = 5 (Kerl et al. 2013)
+    mad_sigmas: float = 3.0  # 3.4: residuals within 3 sigma_MAD feed the fit (eq. 13)
+    inlier_sigmas: float = 2.571  # 3.4: |r| < 2.571 sigma_k
+    min_observing_frames: int = 2  # 3.4: a point observed in fewer than two frames is removed
+    max_iterations: int = 50  # eq. 14 iterated until convergence (ours: the cap and the tolerance)
+    tolerance: float = 1e-4  # relative change of sigma^2
+    min_variance: float = 1e-6  # keeps the iteration defined on noise-free (synthetic) images
+
+
+@dataclass
 class InitConfig:
     tracks: FeatureTrackConfig = field(default_factory=FeatureTrackConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
     geometric_ba: GeometricBAConfig = field(default_factory=GeometricBAConfig)
     semi_dense: SemiDenseConfig = field(default_factory=SemiDenseConfig)
+    photometric_filter: PhotometricFilterConfig = field(default_factory=PhotometricFilterConfig)
     max_frames: int = 30  # give up on a reference after this many frames without a model (ours)

@@ -9,6 +9,9 @@
 4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
    and Gaussian fusion, the adjusted feature points around them as prior (3.3,
    vo_core/init/semi_dense_depth.py); the features themselves are handed over too.
+5. Points whose patches disagree with the window frames beyond 2.571 sigma of a fitted Student-t leave
+   (3.4, vo_core/init/photometric_outliers.py). 004's photometric bundle adjustment is left to the direct
+   system's window adjustment, which runs right after the initialization.
 
 The result is scaled as DSO expects: mean inverse depth 1 in the first keyframe.
 """
@@ -29,6 +32,7 @@ from vo_core.init.config import InitConfig, SemiDenseConfig
 from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
 from vo_core.init.klt_tracks import FeatureTracks
 from vo_core.init.result import InitializationResult
+from vo_core.init.photometric_outliers import photometric_inliers
 from vo_core.init.semi_dense_depth import InverseDepths, search_and_fuse
 from vo_core.init.two_view import TwoViewFailure, reconstruct
 
@@ -125,9 +129,15 @@ class FeatureInitializer:
         uv_features = observations[0][estimate.keep]
         idepth_features = 1.0 / estimate.points[estimate.keep, 2]
         uv, depths = self._with_selected_pixels(uv_features, idepth_features, estimate.poses_world_cam)
+        is_feature = np.arange(len(uv)) < len(uv_features)
+        if self.config.photometric_filter.enabled:
+            keep = self._photometric_inliers(uv, depths, estimate.poses_world_cam)
+            uv, depths, is_feature = uv[keep], depths.subset(keep), is_feature[keep]
+            ba_details["photometric_outliers"] = int((~keep).sum())
+        ba_details["features_handed_over"] = int(is_feature.sum())  # they come first in the result
         T_first_second, idepth, factor = normalize_scale(estimate.poses_world_cam[-1], depths.mean)
         ba_details["points_handed_over"] = len(uv)
-        ba_details["pixels_refined"] = int(np.sum(depths.updates[len(uv_features):] > 0))
+        ba_details["pixels_refined"] = int(np.sum(depths.updates[~is_feature] > 0))
         self._status = {"stage": "succeeded", **model_details, **ba_details}
         return InitializationResult(
             tracks.frame_indices[0], tracks.frame_indices[-1], T_first_second, uv, idepth,
@@ -152,6 +162,12 @@ class FeatureInitializer:
             np.concatenate([np.full(len(uv_features), len(poses_world_cam) - 1), prior.updates]),
         )
         return np.vstack([uv_features, uv]), depths
+
+    def _photometric_inliers(self, uv: np.ndarray, depths: InverseDepths, poses_world_cam: np.ndarray) -> np.ndarray:
+        """Points whose patches match in enough window frames (004 section 3.4)."""
+        frames = [(pyramid, se3_inverse(T)) for pyramid, T in zip(self.pyramids[1:], poses_world_cam[1:])]
+        keep, _ = photometric_inliers(self.reference, uv, depths.mean, frames, self.config.photometric_filter)
+        return keep
 
     def _baseline_px(self, poses_world_cam: np.ndarray) -> float:
         """How many pixels one unit of inverse depth moves a point between the first and last frame: f |t|."""

@@ -31,6 +31,9 @@ class InverseDepths:
     variance: np.ndarray  # (N,)
     updates: np.ndarray  # (N,) how many frames contributed an observation
 
+    def subset(self, keep: np.ndarray) -> "InverseDepths":
+        return InverseDepths(self.mean[keep], self.variance[keep], self.updates[keep])
+
 
 def _project(K: np.ndarray, T_cam_ref: np.ndarray, rays: np.ndarray, inverse_depth: np.ndarray) -> np.ndarray:
     """Pixels of the reference rays at the given inverse depths: pi(R ray + t d) (the scaled point)."""
