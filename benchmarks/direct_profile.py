@@ -1,7 +1,7 @@
 """Time per frame of the direct odometry by stage, over repeated runs, with an optional pyinstrument profile.
 
     python3 benchmarks/direct_profile.py /work/shared/data/tum_fr3_teddy_first200 [--end N] [--repeats 3]
-        [--set direct.window.enabled=false ...] [--pyinstrument profile.html] [--save poses.npz]
+        [--clock cpu] [--set direct.window.enabled=false ...] [--pyinstrument profile.html] [--save poses.npz]
 
 Frames are read once into memory, then the sequence is run ``--repeats`` times with a fresh ``DirectOdometry``.
 Each stage's time of each frame is the median over the repeats (the machine is shared: the median rejects the
@@ -11,15 +11,19 @@ were only tracked and for frames that became keyframes, separately. The stages:
     pyramid      ImagePyramid of the frame
     track        all motion hypotheses tried (``hypotheses``: how many, ``residual_evals``: calcRes calls)
     trace        epipolar tracing of the immature points of every window keyframe
-    slide        choosing and marginalizing the keyframes that leave the window
+    slide        choosing the keyframes that leave the window
+    marginalize  marginalizing them (their information becomes the window's prior)
     activate     activation of converged immature points (distance map + inverse-depth optimization)
     window       the windowed photometric bundle adjustment
     select       pixel selection on the new keyframe
     reference    the new tracking reference (window points projected into the keyframe, per-level arrays)
     rest         the remainder of the keyframe (immature points' creation, bookkeeping)
+    other        with --clock cpu, a tracked-only frame's time in ``_track`` besides track and trace
 
 Stage times come from wrapping the odometry's methods on the instance (nothing in vo_core changes); frames
-that fed the initializer are left out. The script also reports ATE, frames tracked, and whether the repeats
+that fed the initializer are left out. ``--clock wall`` (default) reads the odometry's own wall-clock timings
+for pyramid, track and trace; ``--clock cpu`` times every stage by the process's CPU time instead, which a
+busy shared machine inflates far less (pyramid is then the frame's time outside ``_track``). The script also reports ATE, frames tracked, and whether the repeats
 gave the same trajectory (the odometry is deterministic: they must). ``--save`` writes the poses of the first
 run so that two versions of the code can be compared frame by frame (``--compare`` reads such a file).
 """
@@ -45,8 +49,11 @@ from vo_core.eval.metrics import evaluate  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 # Odometry methods timed as keyframe stages (attribute path on the DirectOdometry instance -> stage).
+TRACK_STAGES = {"_track": "tracking", "_best_hypothesis": "track", "_trace": "trace"}  # timed with --clock cpu
 KEYFRAME_STAGES = {
-    "_slide_window": "slide",
+    "_slide_window": "slide",  # older odometry: choice and marginalization in one method
+    "_keyframes_to_marginalize": "slide",
+    "_marginalize": "marginalize",
     "_activate_points": "activate",
     "_optimize_window": "window",
     "selector.select": "select",
@@ -58,7 +65,8 @@ FRAME_STAGES = ("pyramid", "track", "trace")
 class StageClock:
     """Per-frame stage times (ms) and counters, filled by wrappers around the odometry's methods."""
 
-    def __init__(self):
+    def __init__(self, clock=time.perf_counter):
+        self.clock = clock
         self.current: dict[str, float] = defaultdict(float)
 
     def timed(self, owner, name: str, stage: str) -> None:
@@ -66,11 +74,11 @@ class StageClock:
 
         @functools.wraps(method)
         def wrapper(*args, **kwargs):
-            start = time.perf_counter()
+            start = self.clock()
             try:
                 return method(*args, **kwargs)
             finally:
-                self.current[stage] += (time.perf_counter() - start) * 1000.0
+                self.current[stage] += (self.clock() - start) * 1000.0
 
         setattr(owner, name, wrapper)
 
@@ -89,21 +97,23 @@ class StageClock:
         return out
 
 
-def instrumented_odometry(config, camera) -> tuple[DirectOdometry, StageClock]:
+def instrumented_odometry(config, camera, cpu: bool) -> tuple[DirectOdometry, StageClock]:
     odometry = DirectOdometry(config.direct, config.init, camera, config.seed)
-    clock = StageClock()
-    for path, stage in KEYFRAME_STAGES.items():
+    clock = StageClock(time.process_time if cpu else time.perf_counter)
+    stages = {**KEYFRAME_STAGES, **(TRACK_STAGES if cpu else {}), **({"process": "total"} if cpu else {})}
+    for path, stage in stages.items():
         *parents, name = path.split(".")
         owner = functools.reduce(getattr, parents, odometry)
-        clock.timed(owner, name, stage)
+        if hasattr(owner, name):  # the odometry evolves: a stage it no longer has is simply not reported
+            clock.timed(owner, name, stage)
     clock.counted(odometry.tracker, "track", "hypotheses")
     clock.counted(odometry.tracker, "_residuals", "residual_evals")
     return odometry, clock
 
 
-def run_once(frames, camera, config) -> tuple[list[dict[str, float] | None], list[np.ndarray | None]]:
+def run_once(frames, camera, config, cpu: bool) -> tuple[list[dict[str, float] | None], list[np.ndarray | None]]:
     """One pass: per frame its stage times (None while initializing) and its pose (None if untracked)."""
-    odometry, clock = instrumented_odometry(config, camera)
+    odometry, clock = instrumented_odometry(config, camera, cpu)
     records, poses = [], []
     for frame in frames:
         result = odometry.process(frame)
@@ -112,13 +122,17 @@ def run_once(frames, camera, config) -> tuple[list[dict[str, float] | None], lis
         if "track" not in result.timings_ms:
             records.append(None)
             continue
-        for stage in FRAME_STAGES:
-            stages[stage] = result.timings_ms.get(stage, 0.0)
-        stages["keyframe"] = result.timings_ms.get("keyframe", 0.0)
+        named = sum(stages.get(stage, 0.0) for stage in KEYFRAME_STAGES.values())
+        if cpu:
+            tracking = stages.pop("tracking")  # track + trace + keyframe
+            stages["pyramid"] = stages["total"] - tracking
+            remainder = tracking - stages.get("track", 0.0) - stages.get("trace", 0.0)
+            stages["keyframe" if result.is_keyframe else "other"] = remainder
+        else:
+            stages.update({stage: result.timings_ms.get(stage, 0.0) for stage in (*FRAME_STAGES, "total")})
+            stages["keyframe"] = result.timings_ms.get("keyframe", 0.0)
         if result.is_keyframe:
-            named = sum(stages.get(stage, 0.0) for stage in KEYFRAME_STAGES.values())
             stages["rest"] = stages["keyframe"] - named
-        stages["total"] = result.timings_ms["total"]
         stages["is_keyframe"] = float(result.is_keyframe)
         records.append(stages)
     return records, poses
@@ -137,8 +151,9 @@ def median_over_repeats(runs: list[list[dict | None]]) -> list[dict | None]:
 
 
 def summarize(records: list[dict | None]) -> None:
-    order = ("pyramid", "track", "trace", *KEYFRAME_STAGES.values(), "rest", "keyframe", "total",
-             "hypotheses", "residual_evals")
+    keyframe_stages = dict.fromkeys(KEYFRAME_STAGES.values())  # unique, in order
+    order = ("pyramid", "track", "trace", "other", *keyframe_stages, "rest", "keyframe", "total", "hypotheses",
+             "residual_evals")
     for is_keyframe, title in ((0.0, "tracked-only frames"), (1.0, "keyframes")):
         rows = [r for r in records if r is not None and r["is_keyframe"] == is_keyframe]
         print(f"  {title} ({len(rows)}): mean / median / p90")
@@ -178,7 +193,7 @@ def profile_sequence(folder: Path, args) -> None:
     frames = list(sequence)
     runs, first_poses = [], None
     for repeat in range(args.repeats):
-        records, poses = run_once(frames, sequence.camera, config)
+        records, poses = run_once(frames, sequence.camera, config, args.clock == "cpu")
         runs.append(records)
         if first_poses is None:
             first_poses = poses
@@ -200,6 +215,7 @@ def main() -> None:
     parser.add_argument("folders", nargs="+", type=Path)
     parser.add_argument("--end", type=int, default=None, help="only the first N frames")
     parser.add_argument("--repeats", type=int, default=3, help="runs per sequence; stage times are their median")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall-clock or process CPU time")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     parser.add_argument("--pyinstrument", type=Path, help="write a pyinstrument HTML profile of all runs here")
     parser.add_argument("--save", type=Path, help="write the first run's poses (npz, one entry per frame index)")
