@@ -186,8 +186,8 @@ def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, col
 
 
 @numba.njit(cache=True, nogil=True)
-def pair_linearization(rays, idepth, color, host_weight, R, t, intrinsics, border, packed, factor, offset, host_b,
-                       huber, outlier_energy, weight_component, linearize):
+def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsics, border, packed, factor, offset,
+                       host_b, huber, outlier_energy, weight_component, linearize):
     """The photometric residuals of every point of one host keyframe in one target keyframe (DSO's
     PointFrameResidual::linearize, all points at once).
 
@@ -203,6 +203,9 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, intrinsics, borde
     ``linearize``, M (9x9) and m (9) are sum w J^T J and sum w J^T r over the local parameters
     [xi (6, left increment of T_target_host), a_target, b_target, b_host] (a_host enters as -a_target),
     C (N, 9) the per-point coupling sum w J^T J_d, Hdd and bd the per-point sum w J_d^2 and sum w J_d r.
+    The geometric part of J (how the pixel moves with the pose and the inverse depth) is evaluated at the
+    first estimate (R0, t0) of T_target_host, the image gradient at the current warp (DSO's first-estimate
+    Jacobians, which keep the marginalization prior consistent).
     """
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     height, width = packed.shape[0], packed.shape[1]
@@ -246,7 +249,13 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, intrinsics, borde
             residuals[k] = residual
             weights[k] = huber_w * gradient_weight * gradient_weight
             if linearize:
-                d = idepth[i] * inverse_z  # the new inverse depth 1 / Z_target
+                x0 = R0[0, 0] * rays[i, k, 0] + R0[0, 1] * rays[i, k, 1] + R0[0, 2] * rays[i, k, 2] + idepth[i] * t0[0]
+                y0 = R0[1, 0] * rays[i, k, 0] + R0[1, 1] * rays[i, k, 1] + R0[1, 2] * rays[i, k, 2] + idepth[i] * t0[1]
+                z0 = R0[2, 0] * rays[i, k, 0] + R0[2, 1] * rays[i, k, 1] + R0[2, 2] * rays[i, k, 2] + idepth[i] * t0[2]
+                inverse_z0 = 1.0 / z0 if z0 > 0.0 else inverse_z
+                u = x0 * inverse_z0 if z0 > 0.0 else u
+                v = y0 * inverse_z0 if z0 > 0.0 else v
+                d = idepth[i] * inverse_z0  # the new inverse depth 1 / Z_target
                 dx = gx * fx
                 dy = gy * fy
                 J[k, 0] = d * dx
@@ -259,7 +268,7 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, intrinsics, borde
                 J[k, 7] = -1.0  # b_target
                 J[k, 8] = factor  # b_host
                 # d(u, v) / d(host inverse depth) = (t_xy - (u, v) t_z) / z
-                Jd[k] = (dx * (t[0] - u * t[2]) + dy * (t[1] - v * t[2])) * inverse_z
+                Jd[k] = (dx * (t0[0] - u * t0[2]) + dy * (t0[1] - v * t0[2])) * inverse_z0
         if out:
             status[i] = 1
             continue

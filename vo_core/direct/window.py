@@ -147,6 +147,10 @@ class WindowOptimizer:
         system = _System(np.zeros((size, size)), np.zeros(size), np.zeros((size, len(idepth))),
                          np.zeros(len(idepth)), np.zeros(len(idepth)), np.zeros(len(idepth), int),
                          np.zeros(len(idepth), int), 0.0, 0, {})
+        # First-estimate Jacobians: a keyframe in the prior is linearized at the prior's x0, the others where
+        # they are now.
+        first_estimates = [prior.x0[k.frame_index][0] if k.frame_index in prior.x0 else T
+                           for k, T in zip(keyframes, poses)]
         for h, host in enumerate(hosts):
             count = len(keyframes[h].active_idepth)
             if count == 0 or (only_host is not None and h != only_host):
@@ -154,7 +158,8 @@ class WindowOptimizer:
             points = slice(host.offset, host.offset + count)
             for t, target in enumerate(keyframes):
                 if t != h:
-                    self._add_pair(system, keyframes[h], target, h, t, host, points, poses, affines, idepth)
+                    self._add_pair(system, keyframes[h], target, h, t, host, points, poses, first_estimates,
+                                   affines, idepth)
                     if start is not None:
                         left_view = (system.status[h, t] == POINT_OUT) & (start.status[h, t] == POINT_IN)
                         system.energy += self.outlier_energy * np.count_nonzero(left_view)
@@ -162,14 +167,16 @@ class WindowOptimizer:
         system.energy += prior.add_to(system.H_kk, system.b_k, frame_ids, poses, affines)
         return system
 
-    def _add_pair(self, system, host_kf, target_kf, h, t, host, points, poses, affines, idepth) -> None:
-        T_target_world = se3_inverse(poses[t])
-        T_target_host = T_target_world @ poses[h]
+    def _add_pair(self, system, host_kf, target_kf, h, t, host, points, poses, first_estimates, affines,
+                  idepth) -> None:
+        T_target_host = se3_inverse(poses[t]) @ poses[h]
+        T0_target_world = se3_inverse(first_estimates[t])
+        T0_target_host = T0_target_world @ first_estimates[h]
         factor, offset = relative_affine(host_kf.exposure, target_kf.exposure, affines[h], affines[t])
         camera = target_kf.camera
         energy, status, M, m, C, Hdd, bd = pair_linearization(
             host.rays, idepth[points], host.color, host.weight, T_target_host[:3, :3], T_target_host[:3, 3],
-            np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, target_kf.pyramid[0].packed,
+            T0_target_host[:3, :3], T0_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, target_kf.pyramid[0].packed,
             float(factor), float(offset), float(affines[h][1]), self.huber, self.outlier_energy,
             self.weight_component, True,
         )
@@ -180,7 +187,7 @@ class WindowOptimizer:
         system.outliers[points] += status == POINT_OUTLIER
         # Local parameters [xi, a_t, b_t, b_h] -> absolute [delta_h, a_h, b_h, delta_t, a_t, b_t].
         A = np.zeros((9, 2 * PARAMS_PER_KEYFRAME))
-        adjoint = se3_adjoint(T_target_world)
+        adjoint = se3_adjoint(T0_target_world)
         A[:6, :6], A[:6, 8:14] = adjoint, -adjoint
         A[6, 6], A[6, 14] = -1.0, 1.0  # a_host enters as -a_target
         A[7, 15] = 1.0
