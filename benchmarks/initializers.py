@@ -111,7 +111,7 @@ def summarize(name: str, results: list[RunResult]) -> str:
 
     def median(values):
         values = [v for v in values if np.isfinite(v)]
-        return f"{np.median(values):.2f}" if values else "n/a"
+        return f"{np.median(values):.4g}" if values else "n/a"
 
     return (
         f"  {name}: initialized {len(done)}/{len(results)}; frames mean {np.mean([r.frames for r in done]):.1f}; "

@@ -153,7 +153,9 @@ class WindowConfig:
 
 @dataclass
 class DirectConfig:
-    initializer: str = "coarse"  # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py)
+    # "coarse": DSO's coarse initializer (vo_core/direct/coarse_initializer.py); "features": paper 004's
+    # feature-based one (vo_core/init/feature_initializer.py, settings in the config's ``init`` section).
+    initializer: str = "coarse"
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     selector: SelectorConfig = field(default_factory=SelectorConfig)
