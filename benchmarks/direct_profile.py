@@ -3,7 +3,8 @@
     python3 benchmarks/direct_profile.py /work/shared/data/tum_fr3_teddy_first200 [--end N] [--repeats 3]
         [--clock cpu] [--set direct.window.enabled=false ...] [--pyinstrument profile.html] [--save poses.npz]
 
-Frames are read once into memory, then the sequence is run ``--repeats`` times with a fresh ``DirectOdometry``.
+Frames are read once into memory, the first frames are run once untimed (numba loads its cached kernels on
+first use), then the sequence is run ``--repeats`` times with a fresh ``DirectOdometry``.
 Each stage's time of each frame is the median over the repeats (the machine is shared: the median rejects the
 runs a neighbour slowed down), then summarized over frames as mean / median / 90th percentile, for frames that
 were only tracked and for frames that became keyframes, separately. The stages:
@@ -60,6 +61,7 @@ KEYFRAME_STAGES = {
     "_set_tracking_reference": "reference",
 }
 FRAME_STAGES = ("pyramid", "track", "trace")
+WARM_UP_FRAMES = 20  # an untimed first pass: loading numba's cached kernels takes a while on first use
 
 
 class StageClock:
@@ -191,6 +193,7 @@ def profile_sequence(folder: Path, args) -> None:
     config = load_config(None, [*args.overrides, "method=direct"])
     sequence = open_sequence(folder).cut(end=args.end)
     frames = list(sequence)
+    run_once(frames[:WARM_UP_FRAMES], sequence.camera, config, args.clock == "cpu")  # loads the compiled kernels
     runs, first_poses = [], None
     for repeat in range(args.repeats):
         records, poses = run_once(frames, sequence.camera, config, args.clock == "cpu")
