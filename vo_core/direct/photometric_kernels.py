@@ -39,9 +39,7 @@ def warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed, factor
     saturated = 0
     energy = 0.0
     for i in range(len(idepth)):
-        x = R[0, 0] * rays[i, 0] + R[0, 1] * rays[i, 1] + R[0, 2] * rays[i, 2] + idepth[i] * t[0]
-        y = R[1, 0] * rays[i, 0] + R[1, 1] * rays[i, 1] + R[1, 2] * rays[i, 2] + idepth[i] * t[1]
-        z = R[2, 0] * rays[i, 0] + R[2, 1] * rays[i, 1] + R[2, 2] * rays[i, 2] + idepth[i] * t[2]
+        x, y, z = warp_ray(R, t, rays[i, 0], rays[i, 1], rays[i, 2], idepth[i])
         if not z > 0.0:
             continue
         inverse_z = 1.0 / z
@@ -49,7 +47,7 @@ def warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed, factor
         v = y * inverse_z
         Ku = fx * u + cx
         Kv = fy * v + cy
-        if not (Ku > border and Kv > border and Ku < width - 1 - border and Kv < height - 1 - border):
+        if not inside(Ku, Kv, width, height, border):
             continue
         intensity, gx, gy = bilinear3(packed, Ku, Kv)
         residual = intensity - (factor * color[i] + offset)
@@ -72,6 +70,21 @@ def warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed, factor
         terms[count, TERM_COLOR] = color[i]
         count += 1
     return terms, count, num_terms, saturated, energy + max_energy * saturated
+
+
+@numba.njit(cache=True, nogil=True)
+def warp_ray(R, t, ray_x, ray_y, ray_z, idepth):
+    """R ray + idepth t: a host pixel's ray warped into the target, scaled by the point's inverse depth (so a
+    point at infinity, idepth 0, stays finite); dividing by the third coordinate gives the normalized pixel."""
+    return (R[0, 0] * ray_x + R[0, 1] * ray_y + R[0, 2] * ray_z + idepth * t[0],
+            R[1, 0] * ray_x + R[1, 1] * ray_y + R[1, 2] * ray_z + idepth * t[1],
+            R[2, 0] * ray_x + R[2, 1] * ray_y + R[2, 2] * ray_z + idepth * t[2])
+
+
+@numba.njit(cache=True, nogil=True)
+def inside(u, v, width, height, border):
+    """Whether a pixel lies more than ``border`` pixels inside the image (bilinear lookups stay in it)."""
+    return u > border and v > border and u < width - 1 - border and v < height - 1 - border
 
 
 @numba.njit(cache=True, nogil=True)
@@ -225,9 +238,7 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
         point_energy = 0.0
         out = False
         for k in range(pattern):
-            x = R[0, 0] * rays[i, k, 0] + R[0, 1] * rays[i, k, 1] + R[0, 2] * rays[i, k, 2] + idepth[i] * t[0]
-            y = R[1, 0] * rays[i, k, 0] + R[1, 1] * rays[i, k, 1] + R[1, 2] * rays[i, k, 2] + idepth[i] * t[1]
-            z = R[2, 0] * rays[i, k, 0] + R[2, 1] * rays[i, k, 1] + R[2, 2] * rays[i, k, 2] + idepth[i] * t[2]
+            x, y, z = warp_ray(R, t, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
             if not z > 0.0:
                 out = True
                 break
@@ -236,7 +247,7 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
             v = y * inverse_z
             Ku = fx * u + cx
             Kv = fy * v + cy
-            if not (Ku > border and Kv > border and Ku < width - 1 - border and Kv < height - 1 - border):
+            if not inside(Ku, Kv, width, height, border):
                 out = True
                 break
             intensity, gx, gy = bilinear3(packed, Ku, Kv)
@@ -249,9 +260,7 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
             residuals[k] = residual
             weights[k] = huber_w * gradient_weight * gradient_weight
             if linearize:
-                x0 = R0[0, 0] * rays[i, k, 0] + R0[0, 1] * rays[i, k, 1] + R0[0, 2] * rays[i, k, 2] + idepth[i] * t0[0]
-                y0 = R0[1, 0] * rays[i, k, 0] + R0[1, 1] * rays[i, k, 1] + R0[1, 2] * rays[i, k, 2] + idepth[i] * t0[1]
-                z0 = R0[2, 0] * rays[i, k, 0] + R0[2, 1] * rays[i, k, 1] + R0[2, 2] * rays[i, k, 2] + idepth[i] * t0[2]
+                x0, y0, z0 = warp_ray(R0, t0, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
                 inverse_z0 = 1.0 / z0 if z0 > 0.0 else inverse_z
                 u = x0 * inverse_z0 if z0 > 0.0 else u
                 v = y0 * inverse_z0 if z0 > 0.0 else v
