@@ -200,7 +200,7 @@ def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, col
 
 @numba.njit(cache=True, nogil=True)
 def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsics, border, packed, factor, offset,
-                       host_b, huber, outlier_energy, weight_component, linearize):
+                       host_b, huber, outlier_energy, weight_component):
     """The photometric residuals of every point of one host keyframe in one target keyframe (DSO's
     PointFrameResidual::linearize, all points at once).
 
@@ -212,9 +212,9 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
     is larger. Weights: Huber times the squared mean of the host and the target gradient weights
     w = sqrt(c / (c + |grad|^2)), c = ``weight_component``.
 
-    Returns (energy, status, M, m, C, Hdd, bd): status per point is 0 in, 1 out, 2 outlier; with
-    ``linearize``, M (9x9) and m (9) are sum w J^T J and sum w J^T r over the local parameters
-    [xi (6, left increment of T_target_host), a_target, b_target, b_host] (a_host enters as -a_target),
+    Returns (energy, status, M, m, C, Hdd, bd): status per point is 0 in, 1 out, 2 outlier; M (9x9) and m (9)
+    are sum w J^T J and sum w J^T r over the local parameters [xi (6, left increment of T_target_host),
+    a_target, b_target, b_host] (a_host enters as -a_target),
     C (N, 9) the per-point coupling sum w J^T J_d, Hdd and bd the per-point sum w J_d^2 and sum w J_d r.
     The geometric part of J (how the pixel moves with the pose and the inverse depth) is evaluated at the
     first estimate (R0, t0) of T_target_host, the image gradient at the current warp (DSO's first-estimate
@@ -259,25 +259,24 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
             point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
             residuals[k] = residual
             weights[k] = huber_w * gradient_weight * gradient_weight
-            if linearize:
-                x0, y0, z0 = warp_ray(R0, t0, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
-                inverse_z0 = 1.0 / z0 if z0 > 0.0 else inverse_z
-                u = x0 * inverse_z0 if z0 > 0.0 else u
-                v = y0 * inverse_z0 if z0 > 0.0 else v
-                d = idepth[i] * inverse_z0  # the new inverse depth 1 / Z_target
-                dx = gx * fx
-                dy = gy * fy
-                J[k, 0] = d * dx
-                J[k, 1] = d * dy
-                J[k, 2] = -d * (u * dx + v * dy)
-                J[k, 3] = -(u * v * dx + dy * (1.0 + v * v))
-                J[k, 4] = u * v * dy + dx * (1.0 + u * u)
-                J[k, 5] = u * dy - v * dx
-                J[k, 6] = -factor * (color[i, k] - host_b)  # a_target (a_host: the opposite)
-                J[k, 7] = -1.0  # b_target
-                J[k, 8] = factor  # b_host
-                # d(u, v) / d(host inverse depth) = (t_xy - (u, v) t_z) / z
-                Jd[k] = (dx * (t0[0] - u * t0[2]) + dy * (t0[1] - v * t0[2])) * inverse_z0
+            x0, y0, z0 = warp_ray(R0, t0, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
+            inverse_z0 = 1.0 / z0 if z0 > 0.0 else inverse_z
+            u = x0 * inverse_z0 if z0 > 0.0 else u
+            v = y0 * inverse_z0 if z0 > 0.0 else v
+            d = idepth[i] * inverse_z0  # the new inverse depth 1 / Z_target
+            dx = gx * fx
+            dy = gy * fy
+            J[k, 0] = d * dx
+            J[k, 1] = d * dy
+            J[k, 2] = -d * (u * dx + v * dy)
+            J[k, 3] = -(u * v * dx + dy * (1.0 + v * v))
+            J[k, 4] = u * v * dy + dx * (1.0 + u * u)
+            J[k, 5] = u * dy - v * dx
+            J[k, 6] = -factor * (color[i, k] - host_b)  # a_target (a_host: the opposite)
+            J[k, 7] = -1.0  # b_target
+            J[k, 8] = factor  # b_host
+            # d(u, v) / d(host inverse depth) = (t_xy - (u, v) t_z) / z
+            Jd[k] = (dx * (t0[0] - u * t0[2]) + dy * (t0[1] - v * t0[2])) * inverse_z0
         if out:
             status[i] = 1
             continue
@@ -286,18 +285,17 @@ def pair_linearization(rays, idepth, color, host_weight, R, t, R0, t0, intrinsic
             energy += outlier_energy
             continue
         energy += point_energy
-        if linearize:
-            for k in range(pattern):
-                w = weights[k]
-                r = residuals[k]
-                Hdd[i] += w * Jd[k] * Jd[k]
-                bd[i] += w * Jd[k] * r
-                for a in range(9):
-                    wa = w * J[k, a]
-                    m[a] += wa * r
-                    C[i, a] += wa * Jd[k]
-                    for b in range(a, 9):
-                        M[a, b] += wa * J[k, b]
+        for k in range(pattern):
+            w = weights[k]
+            r = residuals[k]
+            Hdd[i] += w * Jd[k] * Jd[k]
+            bd[i] += w * Jd[k] * r
+            for a in range(9):
+                wa = w * J[k, a]
+                m[a] += wa * r
+                C[i, a] += wa * Jd[k]
+                for b in range(a, 9):
+                    M[a, b] += wa * J[k, b]
     for a in range(9):
         for b in range(a):
             M[a, b] = M[b, a]

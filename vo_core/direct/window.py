@@ -106,7 +106,9 @@ class WindowOptimizer:
             (time.perf_counter() - start) * 1000.0,
         )
 
-    def marginalize(self, keyframes: list, leaving: int, prior: MarginalizationPrior) -> tuple[MarginalizationPrior, int]:
+    def marginalize(
+        self, keyframes: list, leaving: int, prior: MarginalizationPrior
+    ) -> tuple[MarginalizationPrior, int]:
         """The prior once keyframe ``leaving`` (a window index) goes, with the points it hosts (DSO's
         marginalizeFrame after marginalizePointsF); and how many points were marginalized."""
         hosts = self._host_points(keyframes)
@@ -176,9 +178,10 @@ class WindowOptimizer:
         camera = target_kf.camera
         energy, status, M, m, C, Hdd, bd = pair_linearization(
             host.rays, idepth[points], host.color, host.weight, T_target_host[:3, :3], T_target_host[:3, 3],
-            T0_target_host[:3, :3], T0_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, target_kf.pyramid[0].packed,
+            T0_target_host[:3, :3], T0_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+            self.config.border, target_kf.pyramid[0].packed,
             float(factor), float(offset), float(affines[h][1]), self.huber, self.outlier_energy,
-            self.weight_component, True,
+            self.weight_component,
         )
         system.energy += energy
         system.status[h, t] = status
