@@ -69,6 +69,16 @@ def test_kitti_round_trip_with_timestamps_given_beside_or_by_index(tmp_path):
     assert_same(read_trajectory(path), trajectory)
 
 
+
+def test_kitti_poses_folder_takes_the_times_of_its_sequence_folder(tmp_path):
+    """The layout the KITTI loader reads: SEQUENCE/times.txt and SEQUENCE/poses/00.txt."""
+    trajectory = random_trajectory(start_s=0.0)
+    (tmp_path / "poses").mkdir()
+    write_trajectory(tmp_path / "poses" / "00.txt", trajectory, "kitti")
+    np.savetxt(tmp_path / "times.txt", trajectory.timestamps, fmt="%.9e")
+    assert_same(read_trajectory(tmp_path / "poses" / "00.txt"), trajectory)
+
+
 def test_rotations_written_with_few_decimals_are_made_exact(tmp_path):
     trajectory = random_trajectory(count=5, start_s=0.0)
     rounded = "\n".join(" ".join(f"{v:.4f}" for v in pose[:3].ravel()) for pose in trajectory.poses)

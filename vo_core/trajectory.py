@@ -74,8 +74,9 @@ def read_trajectory(path: str | Path, format: str | None = None, timestamps: np.
     """The trajectory in ``path``; ``format`` is one of ``FORMATS``, or None to detect it (``detect_format``).
 
     KITTI files have no timestamps. They come from ``timestamps`` if given, else from a ``times.txt`` beside
-    the file (one time in seconds per line, as in KITTI's sequence folders), else they are the line index
-    times 0.1 s (KITTI's 10 Hz). ``timestamps`` is ignored for the other formats, which carry their own.
+    the file or, for a file in a ``poses/`` folder, beside that folder (one time in seconds per line, as in
+    KITTI's sequence folders and the layout the KITTI loader reads), else they are the line index times 0.1 s
+    (KITTI's 10 Hz). ``timestamps`` is ignored for the other formats, which carry their own.
     """
     path = Path(path)
     if not path.is_file():
@@ -260,8 +261,11 @@ def _kitti_timestamps(path: Path, count: int, timestamps: np.ndarray | None) -> 
             raise InputError(f"{path}: {count} poses but {len(timestamps)} timestamps given")
         _check_increasing(timestamps, path, line_numbers=None)
         return timestamps
-    times_file = path.parent / "times.txt"
-    if not times_file.is_file():
+    candidates = [path.parent / "times.txt"]
+    if path.parent.name == "poses":
+        candidates.append(path.parent.parent / "times.txt")
+    times_file = next((candidate for candidate in candidates if candidate.is_file()), None)
+    if times_file is None:
         return np.arange(count) * KITTI_FRAME_PERIOD_S
     rows = _data_rows(times_file)
     times = _numbers(rows, times_file, 1, exact=False)[:, 0]
