@@ -86,10 +86,22 @@ class PhotometricFilterConfig:
 
 
 @dataclass
+class PhotometricBAConfig:
+    """Photometric bundle adjustment of the initial map (004 section 3.4, eq. 11), before the Student-t filter
+    and once more after it (004's "ORBInitializer v3"; v2 without the filter). It runs the direct system's window
+    optimizer, whose Huber threshold, outlier threshold, gradient weights and Levenberg-Marquardt settings come
+    from the ``direct`` section (DSO's values)."""
+
+    enabled: bool = True
+    max_iterations: int = 20  # DSO FullSystem::optimize: 20 iterations while the window holds two keyframes
+
+
+@dataclass
 class InitConfig:
     tracks: FeatureTrackConfig = field(default_factory=FeatureTrackConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
     geometric_ba: GeometricBAConfig = field(default_factory=GeometricBAConfig)
     semi_dense: SemiDenseConfig = field(default_factory=SemiDenseConfig)
     photometric_filter: PhotometricFilterConfig = field(default_factory=PhotometricFilterConfig)
+    photometric_ba: PhotometricBAConfig = field(default_factory=PhotometricBAConfig)
     max_frames: int = 30  # give up on a reference after this many frames without a model (ours)

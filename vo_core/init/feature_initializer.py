@@ -9,30 +9,36 @@
 4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
    and Gaussian fusion, the adjusted feature points around them as prior (3.3,
    vo_core/init/semi_dense_depth.py); the features themselves are handed over too.
-5. Points whose patches disagree with the window frames beyond 2.571 sigma of a fitted Student-t leave
-   (3.4, vo_core/init/photometric_outliers.py). 004's photometric bundle adjustment is left to the direct
-   system's window adjustment, which runs right after the initialization.
+5. Photometric bundle adjustment of the window's poses and the points' inverse depths (3.4,
+   vo_core/init/photometric_ba.py: the direct system's window optimizer); points whose patches then disagree
+   with the window frames beyond 2.571 sigma of a fitted Student-t leave (3.4,
+   vo_core/init/photometric_outliers.py); a final photometric bundle adjustment of what is left (004's order,
+   "ORBInitializer v3").
 
-The result is scaled as DSO expects: mean inverse depth 1 in the first keyframe.
+The map is scaled as DSO expects, mean inverse depth 1 in the first keyframe, before the photometric
+adjustments (their thresholds are DSO's, set for that scale) and again in the result.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from vo_core.direct.config import SelectorConfig
+from vo_core.direct.config import DirectConfig
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
+from vo_core.direct.window import WindowReport
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse
 from vo_core.init.config import InitConfig, SemiDenseConfig
 from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
 from vo_core.init.klt_tracks import FeatureTracks
-from vo_core.init.result import InitializationResult
+from vo_core.init.photometric_ba import make_photometric_ba, photometric_bundle_adjustment
 from vo_core.init.photometric_outliers import photometric_inliers
+from vo_core.init.result import InitializationResult
 from vo_core.init.semi_dense_depth import InverseDepths, search_and_fuse
 from vo_core.init.two_view import TwoViewFailure, reconstruct
 
@@ -42,20 +48,33 @@ def gray_image(pyramid: ImagePyramid) -> np.ndarray:
     return np.clip(np.round(pyramid[0].intensity), 0, 255).astype(np.uint8)
 
 
-def normalize_scale(T_first_second: np.ndarray, inverse_depths: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Rescale the map so the mean inverse depth is 1 (DSO initializeFromInitializer); the translation scales
-    with the depths. Returns (pose, inverse depths, factor applied to lengths)."""
-    factor = float(np.mean(inverse_depths))
-    T = T_first_second.copy()
-    T[:3, 3] *= factor
-    return T, inverse_depths / factor, factor
+@dataclass
+class InitialMap:
+    """The map being refined: points in the reference frame (the features first) and the window's poses."""
+
+    uv: np.ndarray  # (N, 2) level-0 pixels in the reference
+    depths: InverseDepths
+    is_feature: np.ndarray  # (N,) bool
+    poses_world_cam: np.ndarray  # (F, 4, 4), the reference's the identity
+
+    def subset(self, keep: np.ndarray) -> "InitialMap":
+        return InitialMap(self.uv[keep], self.depths.subset(keep), self.is_feature[keep], self.poses_world_cam)
+
+    def normalized(self) -> "InitialMap":
+        """Rescaled so the mean inverse depth is 1 (DSO initializeFromInitializer); translations scale with it."""
+        factor = float(np.mean(self.depths.mean))
+        poses = self.poses_world_cam.copy()
+        poses[:, :3, 3] *= factor
+        depths = InverseDepths(self.depths.mean / factor, self.depths.variance / factor**2, self.depths.updates)
+        return InitialMap(self.uv, depths, self.is_feature, poses)
 
 
 class FeatureInitializer:
-    def __init__(self, config: InitConfig, selector: SelectorConfig, point_density: float, camera: PinholeCamera, seed: int):
+    def __init__(self, config: InitConfig, direct: DirectConfig, camera: PinholeCamera, seed: int):
         self.config = config
-        self.selector = selector
-        self.point_density = point_density
+        self.selector = direct.selector
+        self.point_density = direct.point_density
+        self.photometric_ba = make_photometric_ba(direct, config.photometric_ba)
         self.camera = camera
         self.seed = seed
         self.rng = np.random.default_rng(seed)
@@ -63,6 +82,7 @@ class FeatureInitializer:
         self.tracks: FeatureTracks | None = None
         self.reference: ImagePyramid | None = None
         self.pyramids: list[ImagePyramid] = []  # every frame of the window, the reference first
+        self.exposures: list[float | None] = []  # their exposure times, where known
         self._status: dict[str, Any] = {"stage": "waiting for a reference frame"}
 
     @property
@@ -75,6 +95,7 @@ class FeatureInitializer:
     def set_first(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> None:
         self.reference = pyramid
         self.pyramids = [pyramid]
+        self.exposures = [exposure]
         self.tracks = FeatureTracks(self.config.tracks, gray_image(pyramid), frame_index)
         self._status = {"stage": "tracking", "corners": self.tracks.num_alive}
 
@@ -82,6 +103,7 @@ class FeatureInitializer:
         tracks = self.tracks
         alive = tracks.add(frame_index, gray_image(pyramid))
         self.pyramids.append(pyramid)
+        self.exposures.append(exposure)
         self._status = {"stage": "tracking", "tracks_kept": alive, "frames": tracks.num_frames}
         if alive < self.config.tracks.min_tracks:
             self._reject(f"{alive} tracks survived, fewer than {self.config.tracks.min_tracks}: new reference")
@@ -130,19 +152,49 @@ class FeatureInitializer:
         idepth_features = 1.0 / estimate.points[estimate.keep, 2]
         uv, depths = self._with_selected_pixels(uv_features, idepth_features, estimate.poses_world_cam)
         is_feature = np.arange(len(uv)) < len(uv_features)
-        if self.config.photometric_filter.enabled:
-            keep = self._photometric_inliers(uv, depths, estimate.poses_world_cam)
-            uv, depths, is_feature = uv[keep], depths.subset(keep), is_feature[keep]
-            ba_details["photometric_outliers"] = int((~keep).sum())
-        ba_details["features_handed_over"] = int(is_feature.sum())  # they come first in the result
-        T_first_second, idepth, factor = normalize_scale(estimate.poses_world_cam[-1], depths.mean)
-        ba_details["points_handed_over"] = len(uv)
-        ba_details["pixels_refined"] = int(np.sum(depths.updates[~is_feature] > 0))
+        initial = InitialMap(uv, depths, is_feature, estimate.poses_world_cam).normalized()
+        refined, refine_details = self._refine_photometrically(initial, tracks.frame_indices)
+        ba_details.update(refine_details)
+        if len(refined.uv) < self.config.two_view.min_triangulated:
+            reason = f"{len(refined.uv)} points left after the photometric refinement"
+            self._reject(reason, **model_details, **ba_details)
+            return None
+        final = refined.normalized()
+        ba_details["features_handed_over"] = int(final.is_feature.sum())  # they come first in the result
+        ba_details["points_handed_over"] = len(final.uv)
+        ba_details["pixels_refined"] = int(np.sum(final.depths.updates[~final.is_feature] > 0))
         self._status = {"stage": "succeeded", **model_details, **ba_details}
         return InitializationResult(
-            tracks.frame_indices[0], tracks.frame_indices[-1], T_first_second, uv, idepth,
-            depths.variance / factor**2, details={**model_details, **ba_details, "frames": tracks.num_frames},
+            tracks.frame_indices[0], tracks.frame_indices[-1], final.poses_world_cam[-1], final.uv, final.depths.mean,
+            final.depths.variance, details={**model_details, **ba_details, "frames": tracks.num_frames},
         )
+
+    def _refine_photometrically(self, initial: InitialMap, frame_indices: list[int]) -> tuple[InitialMap, dict]:
+        """004 section 3.4 in its order: photometric BA, the Student-t outlier filter, a final photometric BA
+        (the final one only refines what the filter changed, so it runs only with the filter)."""
+        adjust, filter_outliers = self.config.photometric_ba.enabled, self.config.photometric_filter.enabled
+        current, details = initial, {}
+        if adjust:
+            current, report = self._adjust(current, frame_indices)
+            details.update(_report_details("photometric_ba", report))
+        if filter_outliers:
+            keep = self._photometric_inliers(current.uv, current.depths, current.poses_world_cam)
+            current = current.subset(keep)
+            details["photometric_outliers"] = int((~keep).sum())
+        if adjust and filter_outliers:
+            current, report = self._adjust(current, frame_indices)
+            details.update(_report_details("final_photometric_ba", report))
+        return current, details
+
+    def _adjust(self, current: InitialMap, frame_indices: list[int]) -> tuple[InitialMap, WindowReport]:
+        """One photometric bundle adjustment of the window (004 eq. 11); the points it drops leave."""
+        window = list(zip(frame_indices, self.pyramids, self.exposures))
+        adjusted = photometric_bundle_adjustment(
+            self.photometric_ba, window, current.poses_world_cam, current.uv, current.depths.mean
+        )
+        kept = current.subset(adjusted.kept)
+        depths = replace(kept.depths, mean=adjusted.inverse_depths)
+        return InitialMap(kept.uv, depths, kept.is_feature, adjusted.poses_world_cam), adjusted.report
 
     def _with_selected_pixels(
         self, uv_features: np.ndarray, idepth_features: np.ndarray, poses_world_cam: np.ndarray
@@ -172,6 +224,14 @@ class FeatureInitializer:
     def _baseline_px(self, poses_world_cam: np.ndarray) -> float:
         """How many pixels one unit of inverse depth moves a point between the first and last frame: f |t|."""
         return float(self.camera.fx * np.linalg.norm(poses_world_cam[-1][:3, 3]))
+
+
+def _report_details(name: str, report: WindowReport) -> dict[str, Any]:
+    """A photometric adjustment's energies, iterations and removed points, for the events."""
+    return {
+        f"{name}_energy_before": round(report.energy_before, 1), f"{name}_energy_after": round(report.energy_after, 1),
+        f"{name}_iterations": report.iterations, f"{name}_removed": report.removed_points,
+    }
 
 
 def depth_prior(

@@ -7,8 +7,8 @@ within 3 sigma_MAD (eq. 13), then the scale is iterated to convergence (eq. 14).
 2.571 sigma_k are discarded; an observation that loses more than half of its residuals is removed, and a
 point left with fewer than two observing frames (the reference counts as one) leaves the map.
 
-The photometric bundle adjustment that 004 runs before and after this filter is not implemented here: the
-direct system's own windowed bundle adjustment refines the map right after initialization.
+004 runs this filter between two photometric bundle adjustments (vo_core/init/photometric_ba.py); the
+feature-based initializer chains them.
 """
 
 from __future__ import annotations

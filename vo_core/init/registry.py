@@ -24,5 +24,5 @@ def make_initializer(direct_config, init_config, camera: PinholeCamera, seed: in
         from vo_core.init.feature_initializer import FeatureInitializer
 
         config = init_config if init_config is not None else InitConfig()
-        return FeatureInitializer(config, direct_config.selector, direct_config.point_density, camera, seed)
+        return FeatureInitializer(config, direct_config, camera, seed)
     raise InputError(f"config key 'direct.initializer': {name!r} is not one of {', '.join(INITIALIZERS)}")

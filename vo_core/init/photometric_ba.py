@@ -1,0 +1,97 @@
+"""Photometric bundle adjustment of the initial map (paper 004 section 3.4, eq. 11).
+
+The poses of every frame of the initializer's window but the reference (the world origin, held fixed) and the
+inverse depths of the handed-over points (hosted in the reference, 8-pixel pattern, Huber norm) are optimized
+over the photometric residuals of the points in every other window frame.
+
+The direct system's windowed bundle adjustment (vo_core/direct/window.py, WindowOptimizer) does exactly this,
+so it runs here unchanged: each window frame becomes a lightweight keyframe (``WindowFrame``) and only the
+reference hosts points; an empty marginalization prior leaves the oldest keyframe, the reference, as the gauge.
+One photometric bundle adjustment in the project instead of two. Its per-keyframe affine brightness (a, b)
+(DSO's model) does the job of 004's patch-mean normalization psi (eq. 12): both absorb brightness changes
+between frames, DSO's with two parameters per frame instead of one ratio per patch.
+
+Points the optimizer finds without inlier residuals (or with more outliers than inliers, DSO's
+flagPointsForRemoval) leave the map; the survivors keep their order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vo_core.direct.config import DirectConfig
+from vo_core.direct.marginalization import MarginalizationPrior
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.direct.window import WindowOptimizer, WindowReport
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.init.config import PhotometricBAConfig
+
+
+@dataclass
+class WindowFrame:
+    """One frame of the initializer's window with the attributes WindowOptimizer reads of a keyframe."""
+
+    frame_index: int
+    pyramid: ImagePyramid
+    exposure: float | None
+    T_world_cam: np.ndarray
+    affine: np.ndarray = field(default_factory=lambda: np.zeros(2))  # DSO's (a, b); both frames start at zero
+    active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 pixels of hosted points
+    active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def camera(self) -> PinholeCamera:
+        return self.pyramid[0].camera
+
+
+@dataclass
+class AdjustedMap:
+    poses_world_cam: np.ndarray  # (F, 4, 4), the reference's the identity
+    kept: np.ndarray  # (N,) bool over the input points: still in the map
+    inverse_depths: np.ndarray  # (kept.sum(),) adjusted, in the order of the input points
+    report: WindowReport
+
+
+def make_photometric_ba(direct: DirectConfig, config: PhotometricBAConfig) -> WindowOptimizer:
+    """The window optimizer as DirectOdometry builds it (its robust costs and LM settings), with the
+    initializer's iteration count."""
+    window = dataclasses.replace(direct.window, max_iterations=config.max_iterations)
+    return WindowOptimizer(
+        window, direct.tracker.huber_threshold, direct.immature.outlier_threshold,
+        direct.immature.outlier_sum_component,
+    )
+
+
+def photometric_bundle_adjustment(
+    optimizer: WindowOptimizer, window: list[tuple[int, ImagePyramid, float | None]], poses_world_cam: np.ndarray,
+    uv: np.ndarray, inverse_depths: np.ndarray,
+) -> AdjustedMap:
+    """Adjust the poses of the window frames (frame index, pyramid, exposure; the reference first) and the inverse
+    depths of the reference's points ``uv``."""
+    frames = [
+        WindowFrame(index, pyramid, exposure, np.array(T, float))
+        for (index, pyramid, exposure), T in zip(window, poses_world_cam)
+    ]
+    reference = frames[0]
+    reference.active_uv = np.array(uv, float)
+    reference.active_idepth = np.array(inverse_depths, float)
+    report = optimizer.optimize(frames, MarginalizationPrior())
+    return AdjustedMap(
+        np.array([frame.T_world_cam for frame in frames]), surviving_rows(uv, reference.active_uv),
+        reference.active_idepth, report,
+    )
+
+
+def surviving_rows(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """Which rows of ``before`` are in ``after``, a boolean-mask subset of it in the same order (how the optimizer
+    removes points): one ordered walk pairs them."""
+    kept = np.zeros(len(before), bool)
+    j = 0
+    for i, row in enumerate(before):
+        if j < len(after) and np.array_equal(row, after[j]):
+            kept[i] = True
+            j += 1
+    return kept
