@@ -8,9 +8,12 @@ For each folder, ``--runs`` forward runs and as many backward runs (the reversed
 different start frame spread over the sequence, ``--length`` frames long. Per run and initializer:
 
 * frames: frames fed from the run's start until the initialization succeeded (restarts included);
-* rot: rotation error (deg) of the initial relative pose T_first_second against ground truth;
+* rot: rotation error (deg) of the initial relative pose T_first_second against ground truth, as the frame that
+  initialized reports it (after the window optimization of the first keyframe pair);
 * dir: angle (deg) between the estimated and true translation directions; since the scale of a monocular
   initialization is arbitrary, the translation error normalized by the distance travelled is 2 sin(dir / 2);
+* init rot / init dir: the same for the initializer's own pose, before the window optimization (paper 004's
+  "initial pose that is provided by an initializer");
 * ATE: RMSE (in ground-truth units) of the run's positions after Sim(3) alignment (vo_core.eval.align.umeyama),
   over the frames that got a pose.
 
@@ -44,6 +47,8 @@ class RunResult:
     frames: int | None  # None: never initialized
     rotation_deg: float = np.nan
     direction_deg: float = np.nan
+    init_rotation_deg: float = np.nan
+    init_direction_deg: float = np.nan
     ate: float = np.nan
     model: str = "-"
     tracked: int = 0
@@ -62,9 +67,20 @@ def relative_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float
     return rotation, float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
 
 
+class RecordingOdometry(DirectOdometry):
+    """Keeps the first initialization's relative pose as the initializer handed it over."""
+
+    initial_T_first_second: np.ndarray | None = None
+
+    def _start_from_initialization(self, frame, pyramid, outcome, result):
+        if self.initial_T_first_second is None:
+            self.initial_T_first_second = outcome.T_first_second.copy()
+        super()._start_from_initialization(frame, pyramid, outcome, result)
+
+
 def run(sequence, initializer: str, overrides: list[str]) -> RunResult:
     config = load_config(None, [*overrides, "method=direct", f"direct.initializer={initializer}"])
-    odometry = DirectOdometry(config.direct, config.init, sequence.camera, config.seed)
+    odometry = RecordingOdometry(config.direct, config.init, sequence.camera, config.seed)
     outcome = RunResult(frames=None)
     timestamps, estimated, truth = {}, [], []
     for count, frame in enumerate(sequence, start=1):
@@ -77,9 +93,11 @@ def run(sequence, initializer: str, overrides: list[str]) -> RunResult:
                 first_true = ground_truth_pose(sequence, timestamps[event.details["first_frame"]])
                 here_true = ground_truth_pose(sequence, frame.timestamp)
                 if first_true is not None and here_true is not None:
+                    T_true = se3_inverse(first_true) @ here_true
                     T_est = se3_inverse(np.asarray(event.details["first_T_world_cam"])) @ result.T_world_cam
-                    outcome.rotation_deg, outcome.direction_deg = relative_errors(
-                        T_est, se3_inverse(first_true) @ here_true
+                    outcome.rotation_deg, outcome.direction_deg = relative_errors(T_est, T_true)
+                    outcome.init_rotation_deg, outcome.init_direction_deg = relative_errors(
+                        odometry.initial_T_first_second, T_true
                     )
         if result.T_world_cam is not None:
             T_true = ground_truth_pose(sequence, frame.timestamp)
@@ -115,7 +133,9 @@ def summarize(name: str, results: list[RunResult]) -> str:
 
     return (
         f"  {name}: initialized {len(done)}/{len(results)}; frames mean {np.mean([r.frames for r in done]):.1f}; "
-        f"median rot {median(r.rotation_deg for r in done)} deg, dir {median(r.direction_deg for r in done)} deg; "
+        f"median rot {median(r.rotation_deg for r in done)} deg, dir {median(r.direction_deg for r in done)} deg "
+        f"(initializer's own: rot {median(r.init_rotation_deg for r in done)} deg, "
+        f"dir {median(r.init_direction_deg for r in done)} deg); "
         f"median ATE {median(r.ate for r in done)}; mean ATE {np.nanmean([r.ate for r in done]):.4f}"
     )
 
@@ -138,6 +158,7 @@ def main() -> None:
                 results[name].append(r)
                 line.append(
                     f"{name} frames {r.frames} {r.model} rot {r.rotation_deg:.2f} dir {r.direction_deg:.1f} "
+                    f"(init rot {r.init_rotation_deg:.2f} dir {r.init_direction_deg:.1f}) "
                     f"ATE {r.ate:.4f} tracked {r.tracked}"
                 )
             print(" | ".join(line), flush=True)

@@ -227,10 +227,11 @@ class FeatureInitializer:
 
 
 def _report_details(name: str, report: WindowReport) -> dict[str, Any]:
-    """A photometric adjustment's energies, iterations and removed points, for the events."""
+    """A photometric adjustment's energies, iterations, removed points and time, for the events."""
     return {
         f"{name}_energy_before": round(report.energy_before, 1), f"{name}_energy_after": round(report.energy_after, 1),
         f"{name}_iterations": report.iterations, f"{name}_removed": report.removed_points,
+        f"{name}_ms": round(report.ms, 1),
     }
 
 
