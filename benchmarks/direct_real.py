@@ -1,12 +1,16 @@
 """The direct odometry (``--method direct``) on real sequences: ATE, frames tracked, and time by stage.
 
     python3 benchmarks/direct_real.py /work/shared/data/tum_fr3_teddy_first200 [more folders] [--end N]
-        [--set direct.window.enabled=false ...] [--profile profile.html]
+        [--set direct.window.enabled=false ...] [--seeds 0 1 2 3 4] [--profile profile.html]
 
 Frames come from the project's loaders (vo_core.datasets.open_sequence) and go straight into
 ``DirectOdometry`` without sinks, so the times are the odometry's own. ATE is vo_core.eval's (Sim(3)-aligned
 RMSE of the positions that got a pose). Times are split into frames that were only tracked and frames that
 became keyframes, per stage (mean / median ms). ``--profile`` writes a pyinstrument HTML profile of the runs.
+
+``--seeds`` runs every folder once per seed (the seed draws the pixel selection's random choices) and adds
+the median, minimum and maximum ATE: on these short sequences a small change anywhere moves a single run's
+ATE by up to a factor of three (KITTI most), so a comparison of two versions should look at the spread.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ from vo_core.eval.metrics import evaluate  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 
-def run(folder: Path, overrides: list[str], end: int | None) -> None:
+def run(folder: Path, overrides: list[str], end: int | None) -> float:
+    """One run: prints its line and its stage times; returns its ATE."""
     config = load_config(None, [*overrides, "method=direct"])
     sequence = open_sequence(folder).cut(end=end)
     odometry = DirectOdometry(config.direct, config.init, sequence.camera, config.seed)
@@ -57,6 +62,13 @@ def run(folder: Path, overrides: list[str], end: int | None) -> None:
     for is_keyframe, name in ((False, "tracked-only frames"), (True, "keyframes")):
         by_stage = (f"{stage} {np.mean(ms):.1f}/{np.median(ms):.1f}" for stage, ms in stages[is_keyframe].items())
         print(f"  {name}, ms mean/median: " + ", ".join(by_stage))
+    return ate
+
+
+def run_seeds(folder: Path, overrides: list[str], end: int | None, seeds: list[int]) -> None:
+    ates = [run(folder, [*overrides, f"seed={seed}"], end) for seed in seeds]
+    print(f"{folder.name}: ATE over seeds {seeds}: median {np.median(ates):.4f}, min {np.min(ates):.4f}, "
+          f"max {np.max(ates):.4f} m; each {', '.join(f'{ate:.4f}' for ate in ates)}")
 
 
 def main() -> None:
@@ -64,6 +76,7 @@ def main() -> None:
     parser.add_argument("folders", nargs="+", type=Path)
     parser.add_argument("--end", type=int, default=None, help="only the first N frames")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    parser.add_argument("--seeds", type=int, nargs="+", help="one run per seed, and the ATE's spread")
     parser.add_argument("--profile", type=Path, help="write a pyinstrument HTML profile here")
     args = parser.parse_args()
     profiler = None
@@ -73,7 +86,10 @@ def main() -> None:
         profiler = Profiler(interval=0.0005)
     with profiler or contextlib.nullcontext():
         for folder in args.folders:
-            run(folder, args.overrides, args.end)
+            if args.seeds:
+                run_seeds(folder, args.overrides, args.end, args.seeds)
+            else:
+                run(folder, args.overrides, args.end)
     if profiler:
         args.profile.write_text(profiler.output_html())
         print(profiler.output_text(unicode=False, color=False, show_all=False)[:6000])

@@ -5,18 +5,23 @@ optimized jointly over all photometric residuals: every point, an 8-pixel patter
 compared with every other keyframe of the window it projects into (DSO Eq. 4, Huber weights times the
 gradient-dependent weights). One iteration of Levenberg-Marquardt:
 
-1. linearize each (host, target) pair of keyframes (photometric_kernels.pair_linearization: the local system
-   over the relative pose increment and the affine parameters, and each point's inverse-depth terms);
-2. map the local systems into the keyframes' absolute parameters: with left increments in the world frame,
-   T_target_host = T_world_target^-1 T_world_host moves by xi = Ad(T_target_world) (delta_host - delta_target);
-3. Schur complement over the points (each point one inverse depth, so its block is a scalar):
+1. linearize every (host, target) pair of keyframes in one compiled pass (photometric_kernels.
+   window_linearization): each pair's local system over the relative pose increment and the affine parameters,
+   and each point's inverse-depth terms, mapped at once into the keyframes' absolute parameters (with left
+   increments in the world frame, T_target_host = T_world_target^-1 T_world_host moves by
+   xi = Ad(T_target_world) (delta_host - delta_target)). As DSO, a point's pixel motion is taken at its centre
+   and shared by its 8 pattern pixels, so each pattern reduces to a few sums before it meets the pose
+   parameters; one kernel call per energy evaluation (per-pair Python bookkeeping cost as much as the
+   arithmetic when it ran pair by pair);
+2. Schur complement over the points (each point one inverse depth, so its block is a scalar):
    H_s = H_kk - H_kp H_pp^-1 H_pk, b_s = b_k - H_kp H_pp^-1 b_p; solve the small dense keyframe system,
    then each point's step by back substitution;
-4. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100), as DSO.
+3. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100), as DSO.
 
-Gauge: the oldest keyframe of the window (pose and affine) is held fixed. Keyframes that left the window
-are kept as a prior (marginalization.py), which also holds the scale: without it the scale is free in every
-window and drifts.
+Gauge: the oldest keyframe of the window (pose and affine) is held fixed. The photometric energy does not see
+the scale either: keyframes that left the window are kept as a prior (marginalization.py) that holds it, and
+once there is one, from the second step of an optimization on, the keyframe step loses its component along the
+window's scale (DSO's SOLVER_ORTHOGONALIZE_X_LATER).
 """
 
 from __future__ import annotations
@@ -24,27 +29,35 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from vo_core.direct.affine import relative_affine
 from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.marginalization import MarginalizationPrior
-from vo_core.direct.photometric_kernels import pair_linearization
+from vo_core.direct.photometric_kernels import window_linearization
 from vo_core.geometry.lie import se3_adjoint, se3_exp, se3_inverse
 
 PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
+# The window's dense products are small (8K x P with P ~ 2000): threaded BLAS gains nothing there, and when the
+# cores are shared (a viewer, the image reader, another job) its spinning threads made window optimizations 8x
+# slower (parking: 389 ms instead of 52 ms per optimization beside a running pytest, 2 cores).
+_BLAS = ThreadpoolController()
 POINT_IN, POINT_OUT, POINT_OUTLIER = 0, 1, 2
 
 
 @dataclass
-class _HostPoints:
-    """The active points of one host keyframe as the kernels need them."""
+class _WindowPoints:
+    """The active points of all keyframes, host by host, and the keyframes' images, as the kernel needs them."""
 
-    rays: np.ndarray  # (N, 8, 3) K^-1 (u, v, 1) of the pattern pixels
-    color: np.ndarray  # (N, 8) host intensities
-    weight: np.ndarray  # (N, 8) host gradient weights sqrt(c / (c + |grad|^2))
-    offset: int  # index of the host's first point in the window's point vector
+    rays: np.ndarray  # (P, 8, 3) K^-1 (u, v, 1) of the pattern pixels
+    center_rays: np.ndarray  # (P, 3) K^-1 (u, v, 1) of the points
+    color: np.ndarray  # (P, 8) host intensities
+    weight: np.ndarray  # (P, 8) host gradient weights sqrt(c / (c + |grad|^2))
+    host_start: np.ndarray  # (K + 1,) the points of keyframe h are host_start[h]:host_start[h + 1]
+    images: numba.typed.List  # each keyframe's packed level-0 image (intensity, d/du, d/dv)
 
 
 @dataclass
@@ -75,23 +88,25 @@ class WindowOptimizer:
         self.outlier_energy = len(PATTERN) * outlier_threshold
         self.weight_component = outlier_sum_component
 
+    @_BLAS.wrap(limits=1, user_api="blas")
     def optimize(self, keyframes: list, prior: MarginalizationPrior) -> WindowReport:
         start = time.perf_counter()
-        hosts = self._host_points(keyframes)
+        points = self._window_points(keyframes)
         idepth = np.concatenate([k.active_idepth for k in keyframes]) if keyframes else np.zeros(0)
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
-        system = self._linearize(keyframes, hosts, poses, affines, idepth, prior)
+        system = self._linearize(keyframes, points, poses, affines, idepth, prior)
         energy_before = energy = system.energy
         first = system
         lam = self.config.initial_lambda
         iterations = 0
         for iterations in range(1, self.config.max_iterations + 1):
-            step_keyframes, step_points = self._solve(system, lam, len(keyframes))
+            fixed_scale = len(prior) > 0 and 0 < self.config.scale_fixed_from_step <= iterations
+            step_keyframes, step_points = self._solve(system, lam, poses, fixed_scale)
             trial_poses = [se3_exp(step_keyframes[i, :6]) @ T for i, T in enumerate(poses)]
             trial_affines = [ab + step_keyframes[i, 6:] for i, ab in enumerate(affines)]
             trial_idepth = np.maximum(idepth + step_points, self.config.min_inverse_depth)
-            trial = self._linearize(keyframes, hosts, trial_poses, trial_affines, trial_idepth, prior, start=first)
+            trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first)
             if trial.energy < energy:
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
@@ -106,16 +121,17 @@ class WindowOptimizer:
             (time.perf_counter() - start) * 1000.0,
         )
 
+    @_BLAS.wrap(limits=1, user_api="blas")
     def marginalize(
         self, keyframes: list, leaving: int, prior: MarginalizationPrior
     ) -> tuple[MarginalizationPrior, int]:
         """The prior once keyframe ``leaving`` (a window index) goes, with the points it hosts (DSO's
         marginalizeFrame after marginalizePointsF); and how many points were marginalized."""
-        hosts = self._host_points(keyframes)
+        points = self._window_points(keyframes)
         idepth = np.concatenate([k.active_idepth for k in keyframes])
         poses = [k.T_world_cam for k in keyframes]
         affines = [np.asarray(k.affine, float) for k in keyframes]
-        system = self._linearize(keyframes, hosts, poses, affines, idepth, MarginalizationPrior(), only_host=leaving)
+        system = self._linearize(keyframes, points, poses, affines, idepth, MarginalizationPrior(), only_host=leaving)
         H_pp = system.H_pp + self.config.idepth_regularization
         H = system.H_kk - (system.H_kp / H_pp) @ system.H_kp.T
         b = system.b_k - (system.H_kp / H_pp) @ system.b_p
@@ -125,87 +141,64 @@ class WindowOptimizer:
 
     # ------------------------------------------------------------------------------------ linearization
 
-    def _host_points(self, keyframes: list) -> list[_HostPoints]:
-        hosts, offset = [], 0
-        for keyframe in keyframes:
-            camera = keyframe.camera
-            pattern_uv = keyframe.active_uv[:, None, :] + PATTERN[None]  # (N, 8, 2)
-            sampled = keyframe.pyramid[0].sample(pattern_uv[..., 0], pattern_uv[..., 1])  # (N, 8, 3)
-            color = np.nan_to_num(sampled[..., 0])
-            grad_sq = np.nan_to_num(sampled[..., 1] ** 2 + sampled[..., 2] ** 2)
-            weight = np.sqrt(self.weight_component / (self.weight_component + grad_sq))
-            rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3)
-            hosts.append(_HostPoints(rays, color, weight, offset))
-            offset += len(keyframe.active_idepth)
-        return hosts
+    def _window_points(self, keyframes: list) -> _WindowPoints:
+        counts = [len(k.active_idepth) for k in keyframes]
+        uv = np.concatenate([k.active_uv for k in keyframes])
+        pattern_uv = uv[:, None, :] + PATTERN[None]  # (P, 8, 2)
+        sampled = np.concatenate([
+            keyframe.pyramid[0].sample(points[..., 0], points[..., 1]).reshape(-1, len(PATTERN), 3)
+            for keyframe, points in zip(keyframes, np.split(pattern_uv, np.cumsum(counts)[:-1]))
+        ])  # (P, 8, 3) intensity and gradients in the host
+        grad_sq = np.nan_to_num(sampled[..., 1] ** 2 + sampled[..., 2] ** 2)
+        camera = keyframes[0].camera
+        return _WindowPoints(
+            camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3), camera.unproject(uv),
+            np.nan_to_num(sampled[..., 0]), np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
+            np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            numba.typed.List([k.pyramid[0].packed for k in keyframes]),
+        )
 
-    def _linearize(self, keyframes, hosts, poses, affines, idepth, prior, only_host: int | None = None,
-                   start: "_System | None" = None) -> "_System":
+    def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
+                   only_host: int | None = None, start: "_System | None" = None) -> "_System":
         """The Gauss-Newton system and energy at a state. A residual that was in view at the ``start`` of the
         optimization and is out now is charged the outlier energy: a step must not look better by pushing points
         out of the images (DSO keeps the residual set of an optimization fixed)."""
         n_kf = len(keyframes)
-        size = PARAMS_PER_KEYFRAME * n_kf
-        system = _System(np.zeros((size, size)), np.zeros(size), np.zeros((size, len(idepth))),
-                         np.zeros(len(idepth)), np.zeros(len(idepth)), np.zeros(len(idepth), int),
-                         np.zeros(len(idepth), int), 0.0, 0, {})
         # First-estimate Jacobians: a keyframe in the prior is linearized at the prior's x0, the others where
         # they are now.
-        first_estimates = [prior.x0[k.frame_index][0] if k.frame_index in prior.x0 else T
-                           for k, T in zip(keyframes, poses)]
-        for h, host in enumerate(hosts):
-            count = len(keyframes[h].active_idepth)
-            if count == 0 or (only_host is not None and h != only_host):
-                continue
-            points = slice(host.offset, host.offset + count)
+        first_estimates = np.array([prior.x0[k.frame_index][0] if k.frame_index in prior.x0 else T
+                                    for k, T in zip(keyframes, poses)])
+        T_target_host = _relative_poses(np.array(poses))
+        T0_target_host = _relative_poses(first_estimates)
+        adjoint0 = np.array([se3_adjoint(se3_inverse(T0)) for T0 in first_estimates])
+        factor, offset = np.ones((n_kf, n_kf)), np.zeros((n_kf, n_kf))
+        for h, host in enumerate(keyframes):
             for t, target in enumerate(keyframes):
-                if t != h:
-                    self._add_pair(system, keyframes[h], target, h, t, host, points, poses, first_estimates,
-                                   affines, idepth)
-                    if start is not None:
-                        left_view = (system.status[h, t] == POINT_OUT) & (start.status[h, t] == POINT_IN)
-                        system.energy += self.outlier_energy * np.count_nonzero(left_view)
-        frame_ids = [k.frame_index for k in keyframes]
-        system.energy += prior.add_to(system.H_kk, system.b_k, frame_ids, poses, affines)
-        return system
-
-    def _add_pair(self, system, host_kf, target_kf, h, t, host, points, poses, first_estimates, affines,
-                  idepth) -> None:
-        T_target_host = se3_inverse(poses[t]) @ poses[h]
-        T0_target_world = se3_inverse(first_estimates[t])
-        T0_target_host = T0_target_world @ first_estimates[h]
-        factor, offset = relative_affine(host_kf.exposure, target_kf.exposure, affines[h], affines[t])
-        camera = target_kf.camera
-        energy, status, M, m, C, Hdd, bd = pair_linearization(
-            host.rays, idepth[points], host.color, host.weight, T_target_host[:3, :3], T_target_host[:3, 3],
-            T0_target_host[:3, :3], T0_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
-            self.config.border, target_kf.pyramid[0].packed,
-            float(factor), float(offset), float(affines[h][1]), self.huber, self.outlier_energy,
-            self.weight_component,
+                factor[h, t], offset[h, t] = relative_affine(host.exposure, target.exposure, affines[h], affines[t])
+        active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
+        camera = keyframes[0].camera
+        energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
+            points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start, points.images,
+            np.ascontiguousarray(T_target_host[..., :3, :3]), np.ascontiguousarray(T_target_host[..., :3, 3]),
+            np.ascontiguousarray(T0_target_host[..., :3, :3]), np.ascontiguousarray(T0_target_host[..., :3, 3]),
+            adjoint0, factor, offset, np.array([ab[1] for ab in affines], float), active,
+            np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, self.huber,
+            self.outlier_energy, self.weight_component,
         )
-        system.energy += energy
-        system.status[h, t] = status
-        system.residuals += int(np.count_nonzero(status == POINT_IN))
-        system.inliers[points] += status == POINT_IN
-        system.outliers[points] += status == POINT_OUTLIER
-        # Local parameters [xi, a_t, b_t, b_h] -> absolute [delta_h, a_h, b_h, delta_t, a_t, b_t].
-        A = np.zeros((9, 2 * PARAMS_PER_KEYFRAME))
-        adjoint = se3_adjoint(T0_target_world)
-        A[:6, :6], A[:6, 8:14] = adjoint, -adjoint
-        A[6, 6], A[6, 14] = -1.0, 1.0  # a_host enters as -a_target
-        A[7, 15] = 1.0
-        A[8, 7] = 1.0
-        columns = np.r_[_block(h), _block(t)]
-        system.H_kk[np.ix_(columns, columns)] += A.T @ M @ A
-        system.b_k[columns] += A.T @ m
-        system.H_kp[columns, points] += A.T @ C.T
-        system.H_pp[points] += Hdd
-        system.b_p[points] += bd
+        if start is not None:
+            left_view = (status == POINT_OUT) & (start.status == POINT_IN)
+            energy += self.outlier_energy * np.count_nonzero(left_view)
+        frame_ids = [k.frame_index for k in keyframes]
+        energy += prior.add_to(H_kk, b_k, frame_ids, poses, affines)
+        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, (status == POINT_IN).sum(axis=0),
+                       (status == POINT_OUTLIER).sum(axis=0), energy, int(np.count_nonzero(status == POINT_IN)), status)
 
     # ------------------------------------------------------------------------------------ solving
 
-    def _solve(self, system: "_System", lam: float, n_kf: int) -> tuple[np.ndarray, np.ndarray]:
-        """The LM step: Schur complement over the inverse depths, the keyframes' system, back substitution."""
+    def _solve(self, system: "_System", lam: float, poses: list, fixed_scale: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The LM step: Schur complement over the inverse depths, the keyframes' system (without its scale
+        component when ``fixed_scale``), back substitution."""
+        n_kf = len(poses)
         H_pp = system.H_pp * (1.0 + lam) + self.config.idepth_regularization
         H_kp_scaled = system.H_kp / H_pp
         H_s = system.H_kk - H_kp_scaled @ system.H_kp.T
@@ -218,6 +211,9 @@ class WindowOptimizer:
                 step[free] = np.linalg.solve(H_s[np.ix_(free, free)], -b_s[free])
             except np.linalg.LinAlgError:
                 step[free] = np.linalg.lstsq(H_s[np.ix_(free, free)], -b_s[free], rcond=None)[0]
+        if fixed_scale:
+            direction = _scale_direction(poses)
+            step -= (step @ direction) / max(direction @ direction, 1e-30) * direction
         step_points = -(system.b_p + system.H_kp.T @ step) / H_pp
         return step.reshape(n_kf, PARAMS_PER_KEYFRAME), step_points
 
@@ -252,8 +248,20 @@ class _System:
     outliers: np.ndarray
     energy: float
     residuals: int
-    status: dict[tuple[int, int], np.ndarray]  # (host, target) -> each point's POINT_IN / OUT / OUTLIER
+    status: np.ndarray  # (K, P) each point's POINT_IN / OUT / OUTLIER in each keyframe (OUT in its host)
 
 
-def _block(index: int) -> np.ndarray:
-    return np.arange(PARAMS_PER_KEYFRAME * index, PARAMS_PER_KEYFRAME * (index + 1))
+def _scale_direction(poses: list) -> np.ndarray:
+    """How the keyframes' parameters move when the window is scaled about the gauge keyframe (DSO's scale
+    nullspace): with left increments in the world frame, each keyframe's translation moves along its offset
+    from the gauge keyframe; rotations and affines stay."""
+    direction = np.zeros(PARAMS_PER_KEYFRAME * len(poses))
+    for i, T in enumerate(poses):
+        direction[PARAMS_PER_KEYFRAME * i: PARAMS_PER_KEYFRAME * i + 3] = T[:3, 3] - poses[0][:3, 3]
+    return direction
+
+
+def _relative_poses(T_world_cam: np.ndarray) -> np.ndarray:
+    """(K, K, 4, 4) T_target_host = T_world_target^-1 T_world_host, indexed [host, target]."""
+    T_cam_world = np.array([se3_inverse(T) for T in T_world_cam])
+    return np.einsum("tij,hjk->htik", T_cam_world, T_world_cam)
