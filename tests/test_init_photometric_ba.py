@@ -13,7 +13,7 @@ from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.lie import se3_exp, se3_inverse, so3_log
 from vo_core.init.config import InitConfig, PhotometricBAConfig
-from vo_core.init.photometric_ba import make_photometric_ba, photometric_bundle_adjustment, surviving_rows
+from vo_core.init.photometric_ba import make_photometric_ba, photometric_bundle_adjustment
 from vo_core.synthetic import make_sequence
 
 
@@ -66,12 +66,6 @@ def test_the_adjustment_brings_perturbed_poses_and_depths_back_to_the_truth():
     assert relative_depth_error(adjusted.inverse_depths, kept_truth) < 0.5 * relative_depth_error(
         idepth[adjusted.kept], kept_truth
     )  # measured: 5.1% -> 1.8%
-
-
-def test_surviving_rows_pairs_a_subset_kept_in_order():
-    before = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [7.0, 8.0]])
-    kept = np.array([True, False, True, False])
-    np.testing.assert_array_equal(surviving_rows(before, before[kept]), kept)
 
 
 @pytest.fixture(scope="module")

@@ -67,8 +67,12 @@ class WindowReport:
     energy_after: float
     points: int
     residuals: int
-    removed_points: int
+    kept: np.ndarray  # (points,) bool: which of the window's points (host by host, in order) are still active
     ms: float
+
+    @property
+    def removed_points(self) -> int:
+        return int(np.count_nonzero(~self.kept))
 
     def as_details(self) -> dict:
         return {
@@ -115,9 +119,9 @@ class WindowOptimizer:
                     break
             else:
                 lam *= self.config.lambda_increase
-        removed = self._write_back(keyframes, poses, affines, idepth, system)
+        kept = self._write_back(keyframes, poses, affines, idepth, system)
         return WindowReport(
-            iterations, energy_before, energy, len(idepth), system.residuals, removed,
+            iterations, energy_before, energy, len(idepth), system.residuals, kept,
             (time.perf_counter() - start) * 1000.0,
         )
 
@@ -219,11 +223,10 @@ class WindowOptimizer:
 
     # ------------------------------------------------------------------------------------ results
 
-    def _write_back(self, keyframes, poses, affines, idepth, system) -> int:
+    def _write_back(self, keyframes, poses, affines, idepth, system) -> np.ndarray:
         """New poses, affines and depths; points with no inlier residual left (or more outliers than inliers,
-        DSO's flagPointsForRemoval) are removed from their host."""
+        DSO's flagPointsForRemoval) are removed from their host. Returns which points stay."""
         keep = (system.inliers > 0) & (system.outliers <= system.inliers) & (idepth > self.config.min_inverse_depth)
-        removed = 0
         offset = 0
         for keyframe, T, ab in zip(keyframes, poses, affines):
             count = len(keyframe.active_idepth)
@@ -232,9 +235,8 @@ class WindowOptimizer:
             keyframe.affine = ab
             keyframe.active_uv = keyframe.active_uv[kept]
             keyframe.active_idepth = idepth[offset:offset + count][kept]
-            removed += int(count - kept.sum())
             offset += count
-        return removed
+        return keep
 
 
 @dataclass

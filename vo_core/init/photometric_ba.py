@@ -12,7 +12,8 @@ One photometric bundle adjustment in the project instead of two. Its per-keyfram
 between frames, DSO's with two parameters per frame instead of one ratio per patch.
 
 Points the optimizer finds without inlier residuals (or with more outliers than inliers, DSO's
-flagPointsForRemoval) leave the map; the survivors keep their order.
+flagPointsForRemoval) leave the map (the report's ``kept`` says which: the reference hosts the window's only
+points); the survivors keep their order.
 """
 
 from __future__ import annotations
@@ -80,18 +81,6 @@ def photometric_bundle_adjustment(
     reference.active_idepth = np.array(inverse_depths, float)
     report = optimizer.optimize(frames, MarginalizationPrior())
     return AdjustedMap(
-        np.array([frame.T_world_cam for frame in frames]), surviving_rows(uv, reference.active_uv),
-        reference.active_idepth, report,
+        np.array([frame.T_world_cam for frame in frames]), report.kept, reference.active_idepth, report,
     )
 
-
-def surviving_rows(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """Which rows of ``before`` are in ``after``, a boolean-mask subset of it in the same order (how the optimizer
-    removes points): one ordered walk pairs them."""
-    kept = np.zeros(len(before), bool)
-    j = 0
-    for i, row in enumerate(before):
-        if j < len(after) and np.array_equal(row, after[j]):
-            kept[i] = True
-            j += 1
-    return kept
