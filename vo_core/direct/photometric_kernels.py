@@ -250,6 +250,7 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
     A = np.zeros((9, 16))
     P = np.empty(6)
     Q = np.empty(6)
+    local_coupling = np.empty(6)  # a point's coupling with the local pose increment xi
     residuals = np.empty(pattern)
     weights = np.empty(pattern)
     gx = np.empty(pattern)
@@ -358,10 +359,12 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
                 cu = ddu * sxx + ddv * sxy
                 cv = ddu * sxy + ddv * syy
                 gd = ddu * sx + ddv * sy
+                for a in range(6):
+                    local_coupling[a] = P[a] * cu + Q[a] * cv
                 for j in range(6):
                     coupling = 0.0
                     for a in range(6):
-                        coupling += adjoint0[tg, a, j] * (P[a] * cu + Q[a] * cv)
+                        coupling += adjoint0[tg, a, j] * local_coupling[a]
                     H_pk[i, 8 * h + j] += coupling
                     H_pk[i, 8 * tg + j] -= coupling
                 c_a = ddu * sxa + ddv * sya

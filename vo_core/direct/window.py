@@ -96,7 +96,7 @@ class WindowOptimizer:
     def optimize(self, keyframes: list, prior: MarginalizationPrior) -> WindowReport:
         start = time.perf_counter()
         points = self._window_points(keyframes)
-        idepth = np.concatenate([k.active_idepth for k in keyframes]) if keyframes else np.zeros(0)
+        idepth = np.concatenate([k.active_idepth for k in keyframes])
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
         system = self._linearize(keyframes, points, poses, affines, idepth, prior)
@@ -194,8 +194,7 @@ class WindowOptimizer:
             energy += self.outlier_energy * np.count_nonzero(left_view)
         frame_ids = [k.frame_index for k in keyframes]
         energy += prior.add_to(H_kk, b_k, frame_ids, poses, affines)
-        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, (status == POINT_IN).sum(axis=0),
-                       (status == POINT_OUTLIER).sum(axis=0), energy, int(np.count_nonzero(status == POINT_IN)), status)
+        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, energy, status)
 
     # ------------------------------------------------------------------------------------ solving
 
@@ -246,11 +245,21 @@ class _System:
     H_kp: np.ndarray  # (8K, P)
     H_pp: np.ndarray  # (P,) the points' blocks are scalars
     b_p: np.ndarray
-    inliers: np.ndarray  # (P,) residuals of each point that are in
-    outliers: np.ndarray
     energy: float
-    residuals: int
     status: np.ndarray  # (K, P) each point's POINT_IN / OUT / OUTLIER in each keyframe (OUT in its host)
+
+    @property
+    def inliers(self) -> np.ndarray:
+        """(P,) how many of each point's residuals are in."""
+        return np.count_nonzero(self.status == POINT_IN, axis=0)
+
+    @property
+    def outliers(self) -> np.ndarray:
+        return np.count_nonzero(self.status == POINT_OUTLIER, axis=0)
+
+    @property
+    def residuals(self) -> int:
+        return int(np.count_nonzero(self.status == POINT_IN))
 
 
 def _scale_direction(poses: list) -> np.ndarray:
