@@ -148,7 +148,7 @@ class _Run:
         return summary
 
     def _play(self, player: Player) -> None:
-        emit = self.odometry.bus.event
+        emit = self.odometry.report
         for frame in player.play(on_drop=emit):
             if frame.image is None:
                 # The loader could not read this image (policy "skip"): the odometry must not see a hole.
@@ -160,7 +160,7 @@ class _Run:
             self.statistics.step_ms.append(1000.0 * (time.perf_counter() - started))
 
     def _finish(self, status: str, wall_s: float) -> RunSummary:
-        snapshot = self.odometry.front_end.map_snapshot()
+        snapshot = self.odometry.map_snapshot()
         self.files.write_keyframes(snapshot.keyframe_poses)
         metrics = {
             "sequence": self.sequence.name,

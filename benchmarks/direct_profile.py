@@ -4,7 +4,8 @@
         [--clock cpu] [--set direct.window.enabled=false ...] [--pyinstrument profile.html] [--save poses.npz]
 
 Frames are read once into memory, the first frames are run once untimed (numba loads its cached kernels on
-first use), then the sequence is run ``--repeats`` times with a fresh ``DirectOdometry``.
+first use), then the sequence is run ``--repeats`` times with a fresh ``Odometry`` (the configured method's
+direct half is timed).
 Each stage's time of each frame is the median over the repeats (the machine is shared: the median rejects the
 runs a neighbour slowed down), then summarized over frames as mean / median / 90th percentile, for frames that
 were only tracked and for frames that became keyframes, separately. The stages:
@@ -19,12 +20,12 @@ were only tracked and for frames that became keyframes, separately. The stages:
     select       pixel selection on the new keyframe
     reference    the new tracking reference (window points projected into the keyframe, per-level arrays)
     rest         the remainder of the keyframe (immature points' creation, bookkeeping)
-    other        with --clock cpu, a tracked-only frame's time in ``_track`` besides track and trace
+    other        with --clock cpu, a tracked-only frame's time in ``track`` and ``accept`` besides track and trace
 
 Stage times come from wrapping the odometry's methods on the instance (nothing in vo_core changes); frames
 that fed the initializer are left out. ``--clock wall`` (default) reads the odometry's own wall-clock timings
 for pyramid, track and trace; ``--clock cpu`` times every stage by the process's CPU time instead, which a
-busy shared machine inflates far less (pyramid is then the frame's time outside ``_track``). The script also reports ATE, frames tracked, and whether the repeats
+busy shared machine inflates far less (pyramid is then the frame's time outside ``track`` and ``accept``). The script also reports ATE, frames tracked, and whether the repeats
 gave the same trajectory (the odometry is deterministic: they must). ``--save`` writes the poses of the first
 run so that two versions of the code can be compared frame by frame (``--compare`` reads such a file).
 """
@@ -45,12 +46,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vo_core.config import load_config  # noqa: E402
 from vo_core.datasets import open_sequence  # noqa: E402
-from vo_core.direct.odometry import DirectOdometry  # noqa: E402
 from vo_core.eval.metrics import evaluate  # noqa: E402
+from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
-# Odometry methods timed as keyframe stages (attribute path on the DirectOdometry instance -> stage).
-TRACK_STAGES = {"_track": "tracking", "_best_hypothesis": "track", "_trace": "trace"}  # timed with --clock cpu
+# Methods timed as stages (attribute path on the system's DirectOdometry instance -> stage).
+TRACK_STAGES = {"track": "tracking", "accept": "tracking", "_best_hypothesis": "track", "_trace": "trace"}  # cpu
 KEYFRAME_STAGES = {
     "_slide_window": "slide",  # older odometry: choice and marginalization in one method
     "_keyframes_to_marginalize": "slide",
@@ -99,17 +100,20 @@ class StageClock:
         return out
 
 
-def instrumented_odometry(config, camera, cpu: bool) -> tuple[DirectOdometry, StageClock]:
-    odometry = DirectOdometry(config.direct, config.init, camera, config.seed)
+def instrumented_odometry(config, camera, cpu: bool) -> tuple[Odometry, StageClock]:
+    odometry = Odometry(config, camera)
+    direct = odometry.direct
     clock = StageClock(time.process_time if cpu else time.perf_counter)
-    stages = {**KEYFRAME_STAGES, **(TRACK_STAGES if cpu else {}), **({"process": "total"} if cpu else {})}
+    stages = {**KEYFRAME_STAGES, **(TRACK_STAGES if cpu else {})}
     for path, stage in stages.items():
         *parents, name = path.split(".")
-        owner = functools.reduce(getattr, parents, odometry)
+        owner = functools.reduce(getattr, parents, direct)
         if hasattr(owner, name):  # the odometry evolves: a stage it no longer has is simply not reported
             clock.timed(owner, name, stage)
-    clock.counted(odometry.tracker, "track", "hypotheses")
-    clock.counted(odometry.tracker, "_residuals", "residual_evals")
+    if cpu:
+        clock.timed(odometry, "track", "total")
+    clock.counted(direct.tracker, "track", "hypotheses")
+    clock.counted(direct.tracker, "_residuals", "residual_evals")
     return odometry, clock
 
 
@@ -118,7 +122,7 @@ def run_once(frames, camera, config, cpu: bool) -> tuple[list[dict[str, float] |
     odometry, clock = instrumented_odometry(config, camera, cpu)
     records, poses = [], []
     for frame in frames:
-        result = odometry.process(frame)
+        result = odometry.track(frame)
         stages = clock.take()
         poses.append(None if result.T_world_cam is None else result.T_world_cam.copy())
         if "track" not in result.timings_ms:
@@ -190,7 +194,9 @@ def report_accuracy(sequence, frames, poses) -> None:
 
 
 def profile_sequence(folder: Path, args) -> None:
-    config = load_config(None, [*args.overrides, "method=direct"])
+    config = load_config(None, args.overrides)
+    if config.method == "klt":
+        raise SystemExit("direct_profile.py times the direct methods; --set method=direct or fdmo")
     sequence = open_sequence(folder).cut(end=args.end)
     frames = list(sequence)
     run_once(frames[:WARM_UP_FRAMES], sequence.camera, config, args.clock == "cpu")  # loads the compiled kernels

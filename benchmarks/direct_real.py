@@ -1,10 +1,11 @@
-"""The direct odometry (``--method direct``) on real sequences: ATE, frames tracked, and time by stage.
+"""The odometry on real sequences: ATE, frames tracked, and time by stage (the configured method; ``--set
+method=direct`` for the direct half alone).
 
     python3 benchmarks/direct_real.py /work/shared/data/tum_fr3_teddy_first200 [more folders] [--end N]
         [--set direct.window.enabled=false ...] [--seeds 0 1 2 3 4] [--profile profile.html]
 
-Frames come from the project's loaders (vo_core.datasets.open_sequence) and go straight into
-``DirectOdometry`` without sinks, so the times are the odometry's own. ATE is vo_core.eval's (Sim(3)-aligned
+Frames come from the project's loaders (vo_core.datasets.open_sequence) and go straight into the system
+(``vo_core.system.Odometry``) without sinks, so the times are the odometry's own. ATE is vo_core.eval's (Sim(3)-aligned
 RMSE of the positions that got a pose). Times are split into frames that were only tracked and frames that
 became keyframes, per stage (mean / median ms). ``--profile`` writes a pyinstrument HTML profile of the runs.
 
@@ -27,21 +28,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vo_core.config import load_config  # noqa: E402
 from vo_core.datasets import open_sequence  # noqa: E402
-from vo_core.direct.odometry import DirectOdometry  # noqa: E402
 from vo_core.eval.metrics import evaluate  # noqa: E402
+from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 
 def run(folder: Path, overrides: list[str], end: int | None) -> float:
     """One run: prints its line and its stage times; returns its ATE."""
-    config = load_config(None, [*overrides, "method=direct"])
+    config = load_config(None, overrides)
     sequence = open_sequence(folder).cut(end=end)
-    odometry = DirectOdometry(config.direct, config.init, sequence.camera, config.seed)
+    odometry = Odometry(config, sequence.camera)
     timestamps, poses, init_frame, failures = [], [], None, 0
     stages: dict[bool, dict[str, list[float]]] = {False: {}, True: {}}  # is_keyframe -> stage -> ms
     wall = time.perf_counter()
     for frame in sequence:
-        result = odometry.process(frame)
+        result = odometry.track(frame)
         failures += sum(event.kind.value == "tracking_failed" for event in result.events)
         if result.T_world_cam is None:
             continue

@@ -1,10 +1,12 @@
-"""The direct odometry on the synthetic presets: Sim(3)-aligned ATE, frames tracked, initialization, failures.
+"""The odometry on the synthetic presets: Sim(3)-aligned ATE, frames tracked, initialization, failures.
 
     python3 benchmarks/direct_synthetic.py [--presets smooth forward ...] [--frames 60] [--size 640x480]
         [--set direct.window.enabled=false ...]
 
-Each preset is rendered by vo_core.synthetic (seed 0 unless --seed) and tracked by DirectOdometry with the
-default configuration (with --set overrides); the estimate is evaluated by vo_core.eval.evaluate against the rendered ground truth.
+Each preset is rendered by vo_core.synthetic (seed 0 unless --seed) and tracked by the system
+(vo_core.system.Odometry) with the default configuration and method (``--set method=direct`` for the direct half
+alone, or other --set overrides); the estimate is evaluated by vo_core.eval.evaluate against the rendered ground
+truth.
 """
 
 from __future__ import annotations
@@ -19,20 +21,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vo_core.config import load_config  # noqa: E402
-from vo_core.direct.odometry import DirectOdometry  # noqa: E402
 from vo_core.eval.metrics import evaluate  # noqa: E402
 from vo_core.synthetic import PRESETS, make_sequence  # noqa: E402
+from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 
 def run(preset: str, frames: int, width: int, height: int, seed: int, overrides: list[str]) -> None:
     sequence = make_sequence(preset, frames, seed, width, height)
-    config = load_config(None, [*overrides, "method=direct"])
-    odometry = DirectOdometry(config.direct, config.init, sequence.camera, seed)
+    config = load_config(None, [f"seed={seed}", *overrides])
+    odometry = Odometry(config, sequence.camera)
     stamps, poses, failures, init_frame, track_ms = [], [], 0, None, []
     start = time.perf_counter()
     for frame in sequence:
-        result = odometry.process(frame)
+        result = odometry.track(frame)
         failures += sum(e.kind.value == "tracking_failed" for e in result.events)
         if "track" in result.timings_ms:
             track_ms.append(result.timings_ms["track"])

@@ -12,7 +12,7 @@ from vo_core.direct.coarse_initializer import CoarseInitializer
 from vo_core.direct.odometry import DirectOdometry
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.errors import InputError
-from vo_core.events import EventKind
+from vo_core.events import EventKind, FrameResult
 from vo_core.system import Odometry
 
 CAMERA = small_camera(320, 240)
@@ -27,11 +27,15 @@ def smooth_pose(i: int) -> np.ndarray:
     )
 
 
+def direct_system(seed=0) -> Odometry:
+    return Odometry(load_config(overrides=["method=direct", f"seed={seed}"]), CAMERA)
+
+
 def run(poses, seed=0):
     scene = PlaneScene(seed=2)
-    odometry = DirectOdometry(DirectConfig(), None, CAMERA, seed)
-    results = [odometry.process(render_frame(scene, CAMERA, i, T)) for i, T in enumerate(poses)]
-    return odometry, results
+    odometry = direct_system(seed)
+    results = [odometry.track(render_frame(scene, CAMERA, i, T)) for i, T in enumerate(poses)]
+    return odometry.direct, results
 
 
 @pytest.fixture(scope="module")
@@ -109,26 +113,38 @@ def test_coarse_initializer_recovers_motion_direction_and_depth():
     assert np.linalg.norm(t_est / scale - t_true) < 0.05 * np.linalg.norm(t_true)
 
 
-def test_system_dispatches_direct_and_rejects_unknown_initializer():
-    config = load_config(overrides=["method=direct"])
-    assert isinstance(Odometry(config, CAMERA).front_end, DirectOdometry)
+def test_system_runs_the_direct_half_and_rejects_unknown_initializer():
+    odometry = direct_system()
+    assert odometry.front_end is None and isinstance(odometry.direct, DirectOdometry)
     with pytest.raises(InputError, match="direct.initializer"):
-        DirectOdometry(DirectConfig(initializer="magic"), None, CAMERA, 0)
+        Odometry(load_config(overrides=["method=direct", "direct.initializer=magic"]), CAMERA)
 
 
 def test_wrong_image_size_is_an_input_error():
-    odometry = DirectOdometry(DirectConfig(), None, CAMERA, 0)
     frame = render_frame(PlaneScene(seed=0), small_camera(160, 120), 0, pose())
     with pytest.raises(InputError, match="frame 0"):
-        odometry.process(frame)
+        direct_system().track(frame)
+
+
+def test_tracking_changes_nothing_until_the_frame_is_accepted(smooth_run):
+    _, odometry, results = smooth_run
+    frame = odometry.prepare(render_frame(PlaneScene(seed=2), CAMERA, 50, smooth_pose(50)))
+    history, last_rmse = list(odometry.history), odometry.last_rmse.copy()
+    first, second = odometry.track(frame), odometry.track(frame)
+    np.testing.assert_array_equal(first.T_world_cam, second.T_world_cam)
+    assert odometry.history == history and np.array_equal(odometry.last_rmse, last_rmse, equal_nan=True)
+    assert first.converged and first.rmse_after <= first.rmse_before and first.hypotheses_tried >= 1
 
 
 def test_tracking_from_a_given_prior_continues_the_trajectory(smooth_run):
     poses, odometry, results = smooth_run
-    scene = PlaneScene(seed=2)
+    frame = odometry.prepare(render_frame(PlaneScene(seed=2), CAMERA, 50, smooth_pose(50)))
     last = results[-1].T_world_cam
-    result = odometry.track_with_prior(render_frame(scene, CAMERA, 50, smooth_pose(50)), last)
-    assert result.tracked
+    tracking = odometry.track(frame, last)
+    assert tracking.from_prior and tracking.hypotheses_tried == 1
+    result = FrameResult(50, frame.timestamp, None, tracked=False)
+    odometry.accept(frame, tracking, result)
+    assert result.tracked and np.array_equal(odometry.last_pose, result.T_world_cam)
     step_estimated = np.linalg.norm(result.T_world_cam[:3, 3] - last[:3, 3])
     step_true = np.linalg.norm(poses[49][:3, 3] - smooth_pose(50)[:3, 3])
     scale = np.linalg.norm(results[-1].T_world_cam[:3, 3] - results[-10].T_world_cam[:3, 3]) / np.linalg.norm(

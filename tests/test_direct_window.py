@@ -9,7 +9,7 @@ import pytest
 from vo_core.config import load_config
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.marginalization import MarginalizationPrior
-from vo_core.direct.odometry import DirectOdometry, Keyframe
+from vo_core.direct.odometry import Keyframe
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowOptimizer
@@ -17,6 +17,7 @@ from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
 from vo_core.geometry.lie import se3_exp, se3_inverse, so3_log
 from vo_core.synthetic import make_sequence
+from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory
 
 CONFIG = DirectConfig()
@@ -172,17 +173,17 @@ def run(window: bool):
     """A synthetic run with or without the window optimization: (ATE, the odometry, its events)."""
     sequence = make_sequence("planar", num_frames=60, seed=0, width=320, height=240)
     config = load_config(None, ["method=direct", f"direct.window.enabled={str(window).lower()}"])
-    odometry = DirectOdometry(config.direct, config.init, sequence.camera, config.seed)
+    odometry = Odometry(config, sequence.camera)
     stamps, poses, events = [], [], []
     for frame in sequence:
-        result = odometry.process(frame)
+        result = odometry.track(frame)
         events += result.events
         if result.T_world_cam is not None:
             stamps.append(frame.timestamp)
             poses.append(result.T_world_cam)
     assert len(poses) >= 45
     ate = evaluate(Trajectory(np.array(stamps), np.array(poses)), sequence.ground_truth)["ate"]["rmse"]
-    return ate, odometry, events
+    return ate, odometry.direct, events
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import pytest
 
 from test_direct_odometry import smooth_pose
 from test_direct_support import PlaneScene, aligned_ate, render_frame, small_camera
+from vo_core.config import load_config
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.odometry import DirectOdometry
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.events import EventKind
 from vo_core.geometry.lie import se3_inverse, so3_log
@@ -18,6 +18,7 @@ from vo_core.init.config import InitConfig
 from vo_core.init.feature_initializer import FeatureInitializer
 from vo_core.init.registry import make_initializer
 from vo_core.synthetic import make_sequence
+from vo_core.system import Odometry
 
 FRAMES = 12
 
@@ -71,9 +72,9 @@ def test_no_initialization_without_translation(preset, reason):
 def test_direct_odometry_tracks_after_the_feature_initializer():
     camera = small_camera(320, 240)
     scene = PlaneScene(seed=2)
-    odometry = DirectOdometry(DirectConfig(initializer="features"), InitConfig(), camera, 0)
+    odometry = Odometry(load_config(overrides=["method=direct", "direct.initializer=features"]), camera)
     poses = [smooth_pose(i) for i in range(30)]
-    results = [odometry.process(render_frame(scene, camera, i, T)) for i, T in enumerate(poses)]
+    results = [odometry.track(render_frame(scene, camera, i, T)) for i, T in enumerate(poses)]
     first = next(i for i, r in enumerate(results) if r.tracked)
     assert first <= 8  # the coarse initializer needs 10 frames here
     tracked = [r for r in results if r.T_world_cam is not None]

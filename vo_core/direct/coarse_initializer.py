@@ -26,7 +26,7 @@ from vo_core.direct.coarse_tracker import PATTERN, huber_weight
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log
-from vo_core.init.result import InitializationResult
+from vo_core.direct.initialization import InitializationResult
 
 PATTERN_PADDING = 2  # settings.h patternPadding of the 8-pixel pattern
 

@@ -1,20 +1,22 @@
-"""Direct sparse odometry, front end (DSO FullSystem without the windowed bundle adjustment).
+"""Direct sparse odometry (DSO's FullSystem), offered as steps that the system (vo_core/system.py) calls in
+the order of FDMO's flowchart (Fig. 2), so that the decisions about a frame are taken above both halves.
 
-Per frame (FullSystem::addActiveFrame): build the pyramid; while not initialized, feed the initializer;
-afterwards track the frame against the newest keyframe trying DSO's motion hypotheses, trace the immature
-points of the keyframes in the window, and decide whether the frame becomes a keyframe. A new keyframe
-slides the window (DSO's marginalization choice; leaving keyframes take their points along), activates
-converged immature points where the window lacks points (a few Gauss-Newton steps on their inverse depth
-against the window's keyframes, optimizeImmaturePoint; the window optimization of part 2 will refine them
-further), selects its own immature points, and becomes the tracking reference with all active points of the
-window projected into it (DSO's coarse depth map).
+    frame = odometry.prepare(raw)                 # the image pyramid (and the size check)
+    odometry.initialize(frame, result)            # while not initialized: feed the initializer
+    tracking = odometry.track(frame, prior)       # align against the newest keyframe; changes nothing
+    keyframe = odometry.accept(frame, tracking, result)   # history, tracing, keyframe, window optimization
+    odometry.reinitialize(T_world_origin)         # forget the map; the next frames initialize again
 
-When no motion hypothesis tracks, the frame is reported as failed and the system reinitializes from that
-frame on, keeping the world frame: the new first keyframe takes the last good pose.
+``track`` tries DSO's motion hypotheses (or only the given prior: FDMO's recovered pose) and returns the best
+alignment with the RMSE at the first guess and after the optimization (FDMO's divergence test). ``accept``
+records the frame, traces the immature points of the window's keyframes along their epipolar lines in it,
+and makes it a keyframe when DSO's criteria say so: the window slides (DSO's marginalization choice),
+converged immature points are activated where the window lacks points, the window is optimized
+(photometric bundle adjustment with the marginalization prior), the leaving keyframes are marginalized,
+the new keyframe selects its own immature points and becomes the tracking reference with all active points
+of the window projected into it (DSO's coarse depth map).
 
-Hooks for FDMO's system layer: ``newest_keyframe`` (image, pose, points of the keyframe just added),
-``last_tracking`` (the tracker's full result for the last frame), and ``track_with_prior`` (track a frame
-from a pose found elsewhere, e.g. by the feature-based recovery, then carry on as usual).
+The initializer is handed in as a factory: the direct half does not know which one runs.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
+from vo_core.direct.initialization import InitializationResult, InitializerFactory
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.motion_model import motion_hypotheses
@@ -40,9 +43,6 @@ from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
-from vo_core.init.base import Initializer
-from vo_core.init.registry import INITIALIZERS, make_initializer
-from vo_core.init.result import InitializationResult
 
 INITIAL_LAST_RMSE = 100.0  # FullSystem: lastCoarseRMSE.setConstant(100)
 # activatePointsMT: currentMinActDist (half-resolution pixels) starts at 2, stays in [0, 4], and moves by these
@@ -102,14 +102,58 @@ class _Tracked:
     affine: np.ndarray
 
 
+@dataclass
+class DirectFrame:
+    """A frame prepared for the direct half: its image pyramid, built once however many steps use it."""
+
+    frame: object  # the datasets.Frame
+    pyramid: ImagePyramid
+
+    @property
+    def index(self) -> int:
+        return self.frame.index
+
+    @property
+    def timestamp(self) -> float:
+        return self.frame.timestamp
+
+    @property
+    def exposure(self) -> float | None:
+        return getattr(self.frame, "exposure_ms", None)
+
+
+@dataclass
+class DirectTracking:
+    """The alignment of one frame against the newest keyframe (FDMO Eq. 2), before anything is decided.
+
+    ``rmse_before`` is the RMSE at the first guess (the motion model's, or the given prior), ``rmse_after`` the
+    one the best hypothesis reached: FDMO's divergence test compares them. ``achieved_rmse`` (per level) is
+    what DSO keeps as lastCoarseRMSE once the frame is accepted."""
+
+    reference: Keyframe
+    result: TrackingResult | None  # the best hypothesis; None when none converged
+    rmse_before: float
+    achieved_rmse: np.ndarray
+    hypotheses_tried: int
+    from_prior: bool  # tracked from a given pose rather than the motion model
+    ms: float
+
+    @property
+    def converged(self) -> bool:
+        return self.result is not None and self.result.success
+
+    @property
+    def rmse_after(self) -> float:
+        return self.result.rmse_after if self.result is not None else float("nan")
+
+    @property
+    def T_world_cam(self) -> np.ndarray:
+        return self.reference.T_world_cam @ se3_inverse(self.result.T_frame_ref)
+
+
 class DirectOdometry:
-    def __init__(self, config: DirectConfig, init_config, camera: PinholeCamera, seed: int):
-        if config.initializer not in INITIALIZERS:
-            raise InputError(
-                f"config key 'direct.initializer': {config.initializer!r} is not one of {', '.join(INITIALIZERS)}"
-            )
+    def __init__(self, config: DirectConfig, camera: PinholeCamera, make_initializer: InitializerFactory, seed: int):
         self.config = config
-        self.init_config = init_config  # the feature-based initializer's settings, once it can be chosen here
         self.camera = camera
         self.seed = seed
         self.selector = PixelSelector(config.selector, seed)
@@ -118,7 +162,8 @@ class DirectOdometry:
             config.window, config.tracker.huber_threshold, config.immature.outlier_threshold,
             config.immature.outlier_sum_component,
         )
-        self.initializer = self._make_initializer()
+        self.make_initializer = make_initializer
+        self.initializer = make_initializer()
         self.state = _State.INITIALIZING
         self.keyframes: list[Keyframe] = []  # the window, oldest first
         self.prior = MarginalizationPrior()  # what the keyframes that left the window still say
@@ -127,42 +172,27 @@ class DirectOdometry:
         self.T_world_origin = np.eye(4)  # where the next initialization's first frame sits in the world
         self.first_rmse = -1.0  # DSO's firstCoarseRMSE of the current reference
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
-        self.last_tracking: TrackingResult | None = None
         self.initializer_frames = 0
-        self._first_frame = None  # (frame, pyramid) the initializer started from
+        self._first_frame: DirectFrame | None = None  # the frame the initializer started from
         self.min_activation_distance = INITIAL_ACTIVATION_DISTANCE
+
+    @property
+    def initialized(self) -> bool:
+        return self.state is _State.TRACKING
 
     @property
     def newest_keyframe(self) -> Keyframe | None:
         return self.keyframes[-1] if self.keyframes else None
 
-    def _make_initializer(self) -> Initializer:
-        return make_initializer(self.config, self.init_config, self.camera, self.seed)
+    @property
+    def last_pose(self) -> np.ndarray | None:
+        """T_world_cam of the last accepted frame."""
+        return self.history[-1].T_world_cam if self.history else None
 
-    # ------------------------------------------------------------------------------------ per frame
+    # ------------------------------------------------------------------------------------ steps
 
-    def process(self, frame) -> FrameResult:
-        """Track one frame (or feed the initializer); never raises on bad tracking."""
-        return self._process(frame, prior=None)
-
-    def track_with_prior(self, frame, T_world_cam_prior: np.ndarray) -> FrameResult:
-        """Like ``process``, but tracking starts from ``T_world_cam_prior`` only (FDMO's recovered pose)."""
-        return self._process(frame, prior=T_world_cam_prior)
-
-    def _process(self, frame, prior: np.ndarray | None) -> FrameResult:
-        timings: dict[str, float] = {}
-        start = time.perf_counter()
-        pyramid = ImagePyramid(self._photometric_image(frame), self.camera, self.config.pyramid)
-        timings["pyramid"] = _ms_since(start)
-        result = FrameResult(frame.index, frame.timestamp, None, tracked=False, timings_ms=timings)
-        if self.state is _State.INITIALIZING:
-            self._initialize(frame, pyramid, result)
-        else:
-            self._track(frame, pyramid, result, prior)
-        result.timings_ms["total"] = _ms_since(start)
-        return result
-
-    def _photometric_image(self, frame) -> np.ndarray:
+    def prepare(self, frame) -> DirectFrame:
+        """The frame's image pyramid (of the photometrically corrected image where there is one)."""
         irradiance = getattr(frame, "irradiance", None)
         image = irradiance if irradiance is not None else frame.image
         if image.shape[:2] != (self.camera.height, self.camera.width):
@@ -170,21 +200,20 @@ class DirectOdometry:
                 f"frame {frame.index}: image is {image.shape[1]}x{image.shape[0]}, "
                 f"the camera is {self.camera.width}x{self.camera.height}"
             )
-        return image
+        return DirectFrame(frame, ImagePyramid(image, self.camera, self.config.pyramid))
 
-    # ------------------------------------------------------------------------------------ initialization
-
-    def _initialize(self, frame, pyramid: ImagePyramid, result: FrameResult) -> None:
+    def initialize(self, frame: DirectFrame, result: FrameResult) -> InitializationResult | None:
+        """Feed the initializer; when it succeeds, the first two keyframes are made (the frame gets its pose)
+        and its outcome is returned."""
         start = time.perf_counter()
-        exposure = getattr(frame, "exposure_ms", None)
         if not self.initializer.started:
-            self.initializer.set_first(frame.index, pyramid, exposure)
-            self._first_frame = (frame, pyramid)
+            self.initializer.set_first(frame.index, frame.pyramid, frame.exposure)
+            self._first_frame = frame
             self.initializer_frames = 0
             result.events.append(_event(EventKind.INITIALIZATION_STARTED, frame, {"method": self.config.initializer}))
             result.timings_ms["initializer"] = _ms_since(start)
-            return
-        outcome = self.initializer.track(frame.index, pyramid, exposure)
+            return None
+        outcome = self.initializer.track(frame.index, frame.pyramid, frame.exposure)
         self.initializer_frames += 1
         result.timings_ms["initializer"] = _ms_since(start)
         if outcome is None:
@@ -192,18 +221,83 @@ class DirectOdometry:
                 # Too long without enough baseline or texture: start over from this frame.
                 details = {**self.initializer.status(), "frames": self.initializer_frames}
                 result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
-                self.initializer = self._make_initializer()
-                self._initialize(frame, pyramid, result)
-            return
-        self._start_from_initialization(frame, pyramid, outcome, result)
+                self.initializer = self.make_initializer()
+                return self.initialize(frame, result)
+            return None
+        self._start_from_initialization(frame, outcome, result)
+        return outcome
 
-    def _start_from_initialization(self, frame, pyramid, outcome: InitializationResult, result: FrameResult):
+    def track(self, frame: DirectFrame, T_world_cam_prior: np.ndarray | None = None) -> DirectTracking:
+        """trackNewCoarse: align the frame against the newest keyframe from DSO's motion hypotheses, or from
+        ``T_world_cam_prior`` only (a pose found elsewhere, e.g. FDMO's feature-based recovery). Changes no
+        state: ``accept`` commits the result."""
+        start = time.perf_counter()
+        reference = self.newest_keyframe
+        if T_world_cam_prior is not None:
+            hypotheses = [se3_inverse(T_world_cam_prior) @ reference.T_world_cam]
+        else:
+            previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
+            hypotheses = motion_hypotheses(
+                previous2, self.history[-1].T_world_cam, reference.T_world_cam,
+                self.config.tracker.rotation_perturbation,
+            )
+        best, prior_rmse, achieved, tried = self._best_hypothesis(
+            frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
+        )
+        return DirectTracking(
+            reference, best, prior_rmse, achieved, tried, T_world_cam_prior is not None, _ms_since(start)
+        )
+
+    def accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
+        """Commit a converged tracking: the frame's pose, the immature points traced in it, and a new keyframe
+        when DSO's criteria ask for one (returned; None otherwise)."""
+        reference, best = tracking.reference, tracking.result
+        T_world_cam = tracking.T_world_cam
+        result.T_world_cam = T_world_cam
+        result.tracked = True
+        result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
+        result.num_inliers = best.num_terms
+        result.points_2d = self._visible(self.tracker.project_points(best.T_frame_ref))
+        self.last_rmse = tracking.achieved_rmse
+        self.history = self.history[-1:] + [_Tracked(T_world_cam, best.affine)]
+        if self.first_rmse < 0:
+            self.first_rmse = best.rmse_after
+
+        start = time.perf_counter()
+        self._trace(frame.pyramid, T_world_cam, best.affine, frame.exposure)
+        result.timings_ms["trace"] = _ms_since(start)
+        factor, _ = relative_affine(reference.exposure, frame.exposure, reference.affine, best.affine)
+        if not needs_keyframe(
+            best.flow, factor, best.rmse_after, self.first_rmse, self.camera.width, self.camera.height,
+            self.config.keyframes,
+        ):
+            return None
+        start = time.perf_counter()
+        keyframe = self._add_keyframe(frame, T_world_cam, best.affine, result)
+        result.timings_ms["keyframe"] = _ms_since(start)
+        return keyframe
+
+    def reinitialize(self, T_world_origin: np.ndarray) -> None:
+        """Forget the map and initialize again from the next frame given to ``initialize``; the new map's first
+        frame sits at ``T_world_origin`` (the world frame is kept, the scale is the new initialization's)."""
+        self.T_world_origin = np.array(T_world_origin, dtype=float)
+        self.state = _State.INITIALIZING
+        self.keyframes = []
+        self.prior = MarginalizationPrior()
+        self.history = []
+        self.initializer = self.make_initializer()
+        self.first_rmse = -1.0
+        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+
+    # ------------------------------------------------------------------------------------ initialization
+
+    def _start_from_initialization(self, frame: DirectFrame, outcome: InitializationResult, result: FrameResult):
         """initializeFromInitializer: the first frame with the initializer's points, the current frame as KF."""
         start = time.perf_counter()
-        first_frame, first_pyramid = self._first_frame
+        first_frame = self._first_frame
         first = Keyframe(
-            first_frame.index, first_frame.timestamp, first_frame.image, first_pyramid, self.T_world_origin.copy(),
-            np.zeros(2), getattr(first_frame, "exposure_ms", None),
+            first_frame.index, first_frame.timestamp, first_frame.frame.image, first_frame.pyramid,
+            self.T_world_origin.copy(), np.zeros(2), first_frame.exposure,
         )
         first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
         self.keyframes = [first]
@@ -222,7 +316,7 @@ class DirectOdometry:
         T_world_cam = first.T_world_cam @ outcome.T_first_second
         self.history = [_Tracked(first.T_world_cam, np.zeros(2)), _Tracked(T_world_cam, np.zeros(2))]
         self.state = _State.TRACKING
-        self.initializer = self._make_initializer()
+        self.initializer = self.make_initializer()
         result.T_world_cam = T_world_cam
         result.tracked = True
         result.events.append(
@@ -231,62 +325,26 @@ class DirectOdometry:
                 {**outcome.details, "first_frame": first.frame_index, "first_T_world_cam": first.T_world_cam.tolist()},
             )
         )
-        self._add_keyframe(frame, pyramid, T_world_cam, np.zeros(2), result)
+        self._add_keyframe(frame, T_world_cam, np.zeros(2), result)
         result.timings_ms["keyframe"] = _ms_since(start)
 
     # ------------------------------------------------------------------------------------ tracking
 
-    def _track(self, frame, pyramid: ImagePyramid, result: FrameResult, prior: np.ndarray | None) -> None:
-        start = time.perf_counter()
-        reference = self.newest_keyframe
-        exposure = getattr(frame, "exposure_ms", None)
-        if prior is not None:
-            hypotheses = [se3_inverse(prior) @ reference.T_world_cam]
-        else:
-            previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
-            hypotheses = motion_hypotheses(
-                previous2, self.history[-1].T_world_cam, reference.T_world_cam,
-                self.config.tracker.rotation_perturbation,
-            )
-        tracking, prior_rmse = self._best_hypothesis(pyramid, hypotheses, self.history[-1].affine, exposure)
-        result.timings_ms["track"] = _ms_since(start)
-        self.last_tracking = tracking
-        if tracking is None or not tracking.success:
-            self._fail(frame, pyramid, result, prior_rmse)
-            return
-        T_world_cam = reference.T_world_cam @ se3_inverse(tracking.T_frame_ref)
-        result.T_world_cam = T_world_cam
-        result.tracked = True
-        # FDMO's divergence test compares the RMSE at the motion prior with the RMSE reached.
-        result.rmse_before, result.rmse_after = prior_rmse, tracking.rmse_after
-        result.num_inliers = tracking.num_terms
-        result.points_2d = self._visible(self.tracker.project_points(tracking.T_frame_ref))
-        self.history = self.history[-1:] + [_Tracked(T_world_cam, tracking.affine)]
-        if self.first_rmse < 0:
-            self.first_rmse = tracking.rmse_after
-
-        start = time.perf_counter()
-        self._trace(pyramid, T_world_cam, tracking.affine, exposure)
-        result.timings_ms["trace"] = _ms_since(start)
-        factor, _ = relative_affine(reference.exposure, exposure, reference.affine, tracking.affine)
-        if needs_keyframe(
-            tracking.flow, factor, tracking.rmse_after, self.first_rmse, self.camera.width, self.camera.height,
-            self.config.keyframes,
-        ):
-            start = time.perf_counter()
-            self._add_keyframe(frame, pyramid, T_world_cam, tracking.affine, result)
-            result.timings_ms["keyframe"] = _ms_since(start)
-
-    def _best_hypothesis(self, pyramid, hypotheses, affine, exposure) -> tuple[TrackingResult | None, float]:
+    def _best_hypothesis(
+        self, pyramid, hypotheses, affine, exposure
+    ) -> tuple[TrackingResult | None, float, np.ndarray, int]:
         """trackNewCoarse: try guesses in order, keep the best finest-level RMSE, stop when good enough.
 
-        Returns the best result (None if none succeeded) and the RMSE at the first guess, the motion prior."""
+        Returns the best result (None if none succeeded), the RMSE at the first guess (the motion prior), the
+        best RMSE reached per level, and how many guesses were tried."""
         config = self.config.tracker
         levels = min(len(pyramid), len(self.tracker.levels))
         achieved = np.full(levels, np.nan)
         best: TrackingResult | None = None
         prior_rmse = float("nan")
+        tried = 0
         for attempt, T_frame_ref in enumerate(hypotheses):
+            tried += 1
             tracking = self.tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
             if attempt == 0:
                 prior_rmse = tracking.rmse_before
@@ -300,34 +358,7 @@ class DirectOdometry:
                 achieved = np.where(better & np.isfinite(rmse[:levels]), rmse[:levels], achieved)
                 if achieved[0] < self.last_rmse[0] * config.retrack_threshold:
                     break
-        self.last_rmse = achieved
-        return best, prior_rmse
-
-    def _fail(self, frame, pyramid, result: FrameResult, prior_rmse: float) -> None:
-        """Report the failure and reinitialize from this frame, keeping the last good pose as origin."""
-        result.rmse_before = prior_rmse
-        details = {
-            "reason": "no motion hypothesis converged",
-            "reference_keyframe": self.newest_keyframe.frame_index,
-            "rmse_before": prior_rmse if np.isfinite(prior_rmse) else None,
-        }
-        result.events.append(_event(EventKind.TRACKING_FAILED, frame, details))
-        self.T_world_origin = self.history[-1].T_world_cam.copy()
-        result.events.append(
-            _event(EventKind.REINITIALIZATION, frame, {"origin_from_frame_pose": self.T_world_origin.tolist()})
-        )
-        self.reset()
-        self._initialize(frame, pyramid, result)
-
-    def reset(self) -> None:
-        """Forget the map and start initializing again (the world origin is kept)."""
-        self.state = _State.INITIALIZING
-        self.keyframes = []
-        self.prior = MarginalizationPrior()
-        self.history = []
-        self.initializer = self._make_initializer()
-        self.first_rmse = -1.0
-        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        return best, prior_rmse, achieved, tried
 
     # ------------------------------------------------------------------------------------ points
 
@@ -340,11 +371,14 @@ class DirectOdometry:
             transfer = relative_affine(keyframe.exposure, exposure, keyframe.affine, affine)
             keyframe.immature.trace(pyramid[0], T_cam_world @ keyframe.T_world_cam, transfer, self.config.immature)
 
-    def _add_keyframe(self, frame, pyramid, T_world_cam: np.ndarray, affine: np.ndarray, result: FrameResult) -> None:
-        """makeKeyFrame without the window optimization: slide the window, activate, select, new reference."""
+    def _add_keyframe(
+        self, frame: DirectFrame, T_world_cam: np.ndarray, affine: np.ndarray, result: FrameResult
+    ) -> Keyframe:
+        """makeKeyFrame: slide the window, activate points, optimize, marginalize, select, new reference."""
+        pyramid = frame.pyramid
         keyframe = Keyframe(
-            frame.index, frame.timestamp, frame.image, pyramid, T_world_cam.copy(), np.asarray(affine, float).copy(),
-            getattr(frame, "exposure_ms", None),
+            frame.index, frame.timestamp, frame.frame.image, pyramid, T_world_cam.copy(),
+            np.asarray(affine, float).copy(), frame.exposure,
             keyframe_id=self.keyframes[-1].keyframe_id + 1 if self.keyframes else 0,
         )
         # makeKeyFrame's order: flag the keyframes that will leave, optimize the window with them and the new
@@ -377,6 +411,7 @@ class DirectOdometry:
                 },
             )
         )
+        return keyframe
 
     def _optimize_window(self, frame, result: FrameResult) -> None:
         """FullSystem::optimize: the joint photometric bundle adjustment of the window; the frame that became

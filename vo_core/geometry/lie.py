@@ -142,8 +142,9 @@ def sim3(s: float, R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def sim3_scale(S: np.ndarray) -> float:
-    """The scale of a similarity, from the determinant of its 3x3 block."""
-    return float(np.cbrt(np.linalg.det(S[:3, :3])))
+    """The scale of a similarity: every column of its 3x3 block sR has norm s. From the Frobenius norm rather
+    than the determinant, whose LU rounding depends on the LAPACK build (it cost 1e-16 at sigma = 1e-10)."""
+    return float(np.sqrt(np.sum(S[:3, :3] ** 2) / 3.0))
 
 
 def _sim3_v_matrix(w: np.ndarray, sigma: float) -> np.ndarray:

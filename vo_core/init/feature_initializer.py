@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from vo_core.direct.config import DirectConfig
+from vo_core.direct.initialization import InitializationResult
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowReport
@@ -38,7 +39,6 @@ from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
 from vo_core.init.klt_tracks import FeatureTracks
 from vo_core.init.photometric_ba import make_photometric_ba, photometric_bundle_adjustment
 from vo_core.init.photometric_outliers import photometric_inliers
-from vo_core.init.result import InitializationResult
 from vo_core.init.semi_dense_depth import InverseDepths, search_and_fuse
 from vo_core.init.two_view import TwoViewFailure, reconstruct
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from vo_core.direct.initialization import Initializer, InitializerFactory
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.init.base import Initializer
 
 INITIALIZERS = ("coarse", "features")
 
@@ -26,3 +26,10 @@ def make_initializer(direct_config, init_config, camera: PinholeCamera, seed: in
         config = init_config if init_config is not None else InitConfig()
         return FeatureInitializer(config, direct_config, camera, seed)
     raise InputError(f"config key 'direct.initializer': {name!r} is not one of {', '.join(INITIALIZERS)}")
+
+
+def initializer_factory(direct_config, init_config, camera: PinholeCamera, seed: int) -> InitializerFactory:
+    """A factory of fresh initializers for the direct odometry; an unknown name is refused now, not at the
+    first frame."""
+    make_initializer(direct_config, init_config, camera, seed)
+    return lambda: make_initializer(direct_config, init_config, camera, seed)

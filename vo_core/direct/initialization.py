@@ -1,0 +1,45 @@
+"""What the direct system asks of an initializer, and what an initializer hands it (DSO's CoarseInitializer is the
+model). The direct half defines the contract; the initializers live on either side (DSO's coarse one in
+vo_core/direct/, the feature-based one in vo_core/init/) and the system hands the odometry a factory.
+
+The direct odometry feeds frames until ``track`` returns an ``InitializationResult``; when it has fed
+``max_frames`` frames without one it starts over from the current frame. ``status`` says, for the events,
+what the latest attempt found (model chosen, tracks kept, why it was rejected).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from vo_core.direct.pyramid import ImagePyramid
+
+
+@dataclass
+class InitializationResult:
+    first_frame_index: int
+    second_frame_index: int
+    T_first_second: np.ndarray  # 4x4, pose of the second keyframe in the first (first is the world origin)
+    points_uv: np.ndarray  # (N, 2) pixel coordinates in the first keyframe, level 0 of the rectified image
+    inverse_depths: np.ndarray  # (N,) inverse depths in the first keyframe, scaled so their mean is 1 (DSO)
+    inverse_depth_variances: np.ndarray | None = None  # (N,), where the initializer estimates them
+    details: dict[str, Any] = field(default_factory=dict)  # model chosen, scores, counts: for the event
+
+
+class Initializer(Protocol):
+    max_frames: int
+
+    @property
+    def started(self) -> bool: ...
+
+    def set_first(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> None: ...
+
+    def track(self, frame_index: int, pyramid: ImagePyramid, exposure: float | None) -> InitializationResult | None: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+
+InitializerFactory = Callable[[], Initializer]  # a fresh initializer for every (re)initialization
