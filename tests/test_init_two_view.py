@@ -1,4 +1,4 @@
-"""Two-view geometry of the feature initializer (vo_core/init/two_view.py) and its geometric bundle adjustment
+"""The two-view reconstruction (vo_core/geometry/two_view.py) and the initializer's geometric bundle adjustment
 (vo_core/init/geometric_ba.py) on exactly known synthetic correspondences."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import pytest
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3, se3_inverse, so3_exp, so3_log, transform_points
-from vo_core.init.config import GeometricBAConfig, TwoViewConfig
+from vo_core.geometry.two_view import TwoViewConfig, TwoViewFailure, reconstruct
+from vo_core.init.config import GeometricBAConfig
 from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
-from vo_core.init.two_view import TwoViewFailure, reconstruct
 
 CAMERA = PinholeCamera(640, 480, fx=500.0, fy=500.0, cx=319.5, cy=239.5)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from vo_core.geometry.two_view import TwoViewConfig  # the section init.two_view
 from vo_core.klt.config import CornerConfig, KltTrackerConfig
 
 
@@ -22,25 +23,6 @@ class FeatureTrackConfig:
     min_median_flow_px: float = 1.0  # no two-view attempt while the tracks barely moved (ours): "no motion"
     corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_corners=1000, min_distance=10.0))
     klt: KltTrackerConfig = field(default_factory=KltTrackerConfig)  # forward-backward error below 1 px
-
-
-@dataclass
-class TwoViewConfig:
-    """Homography and fundamental matrix in parallel (004 section 3.2, after ORB-SLAM IV)."""
-
-    ransac_iterations: int = 200  # ORB-SLAM: 200 sets of 8 correspondences, shared by both models
-    sample_size: int = 8  # ORB-SLAM: 8 points for both the normalized DLT (H) and the 8-point algorithm (F)
-    sigma_px: float = 1.0  # ORB-SLAM: measurement noise of one pixel
-    chi2_homography: float = 5.99  # 3.2 eq. 3: T_H (chi-square 95 %, 2 DOF)
-    chi2_fundamental: float = 3.84  # 3.2 eq. 3: T_F (chi-square 95 %, 1 DOF)
-    score_gamma: float = 5.99  # 3.2 eq. 3: Gamma = T_H, so both models score on the same scale
-    homography_ratio: float = 0.4  # 3.2 eq. 1: homography when S_H / (S_H + S_F) > 0.4
-    max_reprojection_px: float = 2.0  # ORB-SLAM CheckRT: squared error < 4 sigma^2 in both views
-    min_parallax_deg: float = 1.0  # ORB-SLAM Initialize(): minParallax = 1 degree
-    min_triangulated: int = 50  # ORB-SLAM: minTriangulated = 50 good points for a hypothesis
-    min_good_ratio: float = 0.9  # ORB-SLAM: the best hypothesis explains 90 % of the model's inliers
-    ambiguity_ratio: float = 0.75  # ORB-SLAM ReconstructH: second best < 0.75 best; ReconstructF uses 0.7
-    parallax_rank: int = 50  # ORB-SLAM CheckRT: the parallax of a hypothesis is its 50th largest angle
 
 
 @dataclass

@@ -3,7 +3,7 @@
 1. Corners in the reference frame, tracked frame to frame by KLT with a forward-backward check (3.1); too
    few surviving tracks give up this reference (the odometry then starts again from its next frame).
 2. From the N-th frame on (N = 4), each frame is tried against the reference: homography and fundamental
-   matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/init/two_view.py).
+   matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/geometry/two_view.py).
 3. Geometric bundle adjustment over every frame of the window with severe- and normal-outlier removal
    (3.2, vo_core/init/geometric_ba.py).
 4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
@@ -34,13 +34,13 @@ from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowReport
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse
+from vo_core.geometry.two_view import TwoViewFailure, reconstruct
 from vo_core.init.config import InitConfig, SemiDenseConfig
 from vo_core.init.geometric_ba import adjust_with_outlier_removal, initial_poses
 from vo_core.init.klt_tracks import FeatureTracks
 from vo_core.init.photometric_ba import make_photometric_ba, photometric_bundle_adjustment
 from vo_core.init.photometric_outliers import photometric_inliers
 from vo_core.init.semi_dense_depth import InverseDepths, search_and_fuse
-from vo_core.init.two_view import TwoViewFailure, reconstruct
 
 
 def gray_image(pyramid: ImagePyramid) -> np.ndarray:

@@ -5,8 +5,8 @@ structure), and all poses and points are refined together with the first pose he
 a severe reprojection error are removed and the adjustment repeated until none remain; then the "normal"
 outliers (beyond 3 px) are removed and the survivors adjusted once more.
 
-The solver is the KLT baseline's (vo_core/klt/bundle_adjustment.py): Levenberg-Marquardt with the Schur
-complement of the points and a Huber loss.
+The solver is the shared windowed bundle adjustment (vo_core/geometry/bundle_adjustment.py): Levenberg-Marquardt
+with the Schur complement of the points and a Huber loss.
 """
 
 from __future__ import annotations
@@ -16,11 +16,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3, se3_inverse, so3_exp
 from vo_core.init.config import GeometricBAConfig
-from vo_core.klt.bundle_adjustment import WindowProblem, adjust_window
-from vo_core.klt.config import BundleAdjustmentConfig
 
 MIN_PNP_POINTS = 6  # EPnP needs at least 4; a margin against degenerate sets
 
@@ -66,7 +65,7 @@ def adjust_with_outlier_removal(
     camera: PinholeCamera, poses: np.ndarray, points: np.ndarray, tracks: np.ndarray, config: GeometricBAConfig
 ) -> WindowEstimate:
     """``tracks`` (F, M, 2) observations of the M ``points`` in the F frames whose start values are ``poses``."""
-    solver = BundleAdjustmentConfig(huber_px=config.huber_px, max_iterations=config.max_iterations)
+    solver = BundleAdjustmentSettings(huber_px=config.huber_px, max_iterations=config.max_iterations)
     keep = np.ones(len(points), bool)
     points = points.copy()
     severe = outliers = 0

@@ -1,34 +1,33 @@
 """Bootstrap: the first landmarks from two frames a few apart (paper 003 II-A).
 
 Corners detected in the first frame are tracked frame by frame with KLT; from ``min_frame_gap`` frames on,
-each new frame is tried as the second view: essential matrix with RANSAC, the one of its four
-decompositions that puts the points in front of both cameras (recoverPose), triangulation. A pair whose
-median bearing angle is too small is rejected and the next frame tried (the baseline grows with time).
+each new frame is tried as the second view: the project's two-view reconstruction (homography or fundamental
+matrix as ORB-SLAM chooses, the motion hypothesis that puts the points in front of both cameras,
+vo_core/geometry/two_view.py; the paper runs an essential-matrix MSAC instead), then a two-view bundle
+adjustment. A pair whose median bearing angle is too small is rejected and the next frame tried (the baseline
+grows with time).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
+from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3, se3_inverse
-from vo_core.klt.bundle_adjustment import WindowProblem, adjust_window
-from vo_core.klt.config import BootstrapConfig, BundleAdjustmentConfig, CornerConfig, TriangulationConfig
+from vo_core.geometry.multiview import bearing_angles, reprojection_errors
+from vo_core.geometry.two_view import TwoViewFailure, reconstruct
+from vo_core.klt.config import BootstrapConfig, CornerConfig, TriangulationConfig
 from vo_core.klt.tracking import KltTracker, detect_corners
-from vo_core.klt.triangulation import bearing_angles, reprojection_errors, triangulate
-
-MIN_POINTS_TO_REFINE = 8  # fewer triangulated inliers than this: no model worth refining
 
 
 @dataclass
-class TwoViewResult:
+class BootstrapGeometry:
     """The relative pose of the second view (unit baseline) and the tracks it explains."""
 
     T_first_second: np.ndarray  # 4x4, camera-to-camera, |t| = 1
-    inliers: np.ndarray  # (N,) bool over the input matches: consistent with the essential matrix
+    inliers: np.ndarray  # (N,) bool over the input matches: consistent with the chosen two-view model
     points_first: np.ndarray  # (N, 3) triangulated points in the first camera (rows valid where ``triangulated``)
     triangulated: np.ndarray  # (N,) bool: inlier, in front of both views, reprojecting well
     median_parallax_deg: float  # median bearing angle of the triangulated points
@@ -40,48 +39,38 @@ def two_view_geometry(
     uv_second: np.ndarray,
     config: BootstrapConfig,
     triangulation: TriangulationConfig,
-    adjustment: BundleAdjustmentConfig,
-) -> TwoViewResult | None:
-    """Relative pose and structure from matched pixels of two calibrated views, or None if no model fits.
+    adjustment: BundleAdjustmentSettings,
+    rng: np.random.Generator,
+    uv_between: list[np.ndarray] | None = None,
+) -> BootstrapGeometry:
+    """Relative pose and structure from matched pixels of two calibrated views, or TwoViewFailure saying why not.
+    ``uv_between``: the same tracks in the frames between, which tell a plane's two motions apart.
 
-    The RANSAC model comes from a minimal sample; a two-view bundle adjustment over all its inliers then
-    lowers the error of the translation direction several times on the synthetic sequences (e.g. 3.7 to
-    0.6 degrees), which matters: the whole trajectory inherits it."""
-    K = camera.K
-    E, mask = cv2.findEssentialMat(
-        uv_first, uv_second, K, method=cv2.RANSAC, prob=config.ransac_confidence,
-        threshold=config.ransac_threshold_px,
-    )
-    if E is None or E.shape[0] < 3:
-        return None
-    inliers = mask.ravel() > 0
-    # With degenerate data findEssentialMat may stack several solutions; the first is the best scored one.
-    # recoverPose picks the decomposition with the most points in front of both cameras; it returns
-    # x_second = R x_first + t.
-    _, R, t, _ = cv2.recoverPose(E[:3], uv_first, uv_second, K, mask=mask.copy())
-    T_first_second = se3_inverse(se3(R, t.ravel()))
-    points, valid = triangulate(
-        camera, np.eye(4), uv_first, T_first_second, uv_second,
-        triangulation.max_reprojection_px, triangulation.min_depth,
-    )
-    triangulated = inliers & valid
-    if triangulated.sum() < MIN_POINTS_TO_REFINE:
-        return None
+    The reconstruction's pose comes from a minimal sample; a two-view bundle adjustment over its triangulated
+    points then lowers the error of the translation direction several times on the synthetic sequences
+    (e.g. 3.7 to 0.6 degrees), which matters: the whole trajectory inherits it."""
+    uv_first = np.asarray(uv_first, float)
+    uv_second = np.asarray(uv_second, float)
+    reconstruction = reconstruct(camera, uv_first, uv_second, config.two_view, rng, uv_between)
+    points, triangulated = reconstruction.points_first.copy(), reconstruction.good.copy()
     T_first_second, points[triangulated] = _refine(
-        camera, T_first_second, points[triangulated], uv_first[triangulated], uv_second[triangulated], adjustment
+        camera, reconstruction.T_first_second, points[triangulated], uv_first[triangulated],
+        uv_second[triangulated], adjustment,
     )
     for T_world_cam, uv in ((np.eye(4), uv_first), (T_first_second, uv_second)):
         error, depth = reprojection_errors(camera, T_world_cam, points, uv)
         triangulated &= (depth > triangulation.min_depth) & (error < triangulation.max_reprojection_px)
     if not triangulated.any():
-        return None
+        raise TwoViewFailure("no point reprojects well after the two-view bundle adjustment")
     angles = bearing_angles(camera, np.eye(4), uv_first[triangulated], T_first_second, uv_second[triangulated])
-    return TwoViewResult(T_first_second, inliers, points, triangulated, float(np.degrees(np.median(angles))))
+    return BootstrapGeometry(
+        T_first_second, reconstruction.inliers, points, triangulated, float(np.degrees(np.median(angles)))
+    )
 
 
 def _refine(
     camera: PinholeCamera, T_first_second: np.ndarray, points: np.ndarray, uv_first: np.ndarray,
-    uv_second: np.ndarray, adjustment: BundleAdjustmentConfig,
+    uv_second: np.ndarray, adjustment: BundleAdjustmentSettings,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Two-view bundle adjustment with the first view held, rescaled back to a unit baseline (the scale is
     the one freedom two views leave)."""
@@ -116,7 +105,8 @@ class Bootstrapper:
 
     def __init__(
         self, camera: PinholeCamera, config: BootstrapConfig, corners: CornerConfig,
-        triangulation: TriangulationConfig, adjustment: BundleAdjustmentConfig, tracker: KltTracker,
+        triangulation: TriangulationConfig, adjustment: BundleAdjustmentSettings, tracker: KltTracker,
+        seed: int = 0,
     ):
         self.camera = camera
         self.config = config
@@ -124,24 +114,31 @@ class Bootstrapper:
         self.triangulation = triangulation
         self.adjustment = adjustment
         self.tracker = tracker
+        self.seed = seed
         self.first_index = -1
+        self.previous_index = -1
         self.previous_image: np.ndarray | None = None
         self.uv_first = np.empty((0, 2), np.float32)
+        self.uv_between: list[np.ndarray] = []  # the tracks in every frame between the first and the current
         self.uv_current = np.empty((0, 2), np.float32)
         self.last_failure = ""
 
     def start(self, frame_index: int, image: np.ndarray) -> None:
         """Make ``image`` the first view: detect its corners."""
-        self.first_index = frame_index
+        self.first_index = self.previous_index = frame_index
         self.previous_image = image
         self.uv_first = detect_corners(image, self.corners, np.empty((0, 2)), self.corners.max_corners)
+        self.uv_between = []
         self.uv_current = self.uv_first.copy()
 
     def step(self, frame_index: int, image: np.ndarray) -> Bootstrap | None:
         """Track into ``image`` and try it as the second view. None while waiting; ``last_failure`` says why,
         and ``should_restart`` whether this first frame should be given up."""
         uv, valid = self.tracker.track(self.previous_image, image, self.uv_current)
-        self.previous_image = image
+        if self.previous_index != self.first_index:  # the frame tracked from lies between the first and this one
+            self.uv_between.append(self.uv_current)
+        self.previous_index, self.previous_image = frame_index, image
+        self.uv_between = [between[valid] for between in self.uv_between]
         self.uv_first, self.uv_current = self.uv_first[valid], uv[valid]
         gap = frame_index - self.first_index
         if len(self.uv_current) < self.config.min_tracks:
@@ -150,9 +147,16 @@ class Bootstrapper:
         if gap < self.config.min_frame_gap:
             self.last_failure = ""
             return None
-        geometry = two_view_geometry(
-            self.camera, self.uv_first, self.uv_current, self.config, self.triangulation, self.adjustment
-        )
+        # Seeded per frame, as the rest of the pipeline's random draws: a run is reproducible frame by frame.
+        rng = np.random.default_rng([self.seed, frame_index])
+        try:
+            geometry = two_view_geometry(
+                self.camera, self.uv_first, self.uv_current, self.config, self.triangulation, self.adjustment,
+                rng, self.uv_between,
+            )
+        except TwoViewFailure as failure:
+            self.last_failure = str(failure)
+            return None
         problem = self._problem(geometry)
         self.last_failure = problem or ""
         if problem:
@@ -171,12 +175,10 @@ class Bootstrapper:
             or frame_index - self.first_index >= self.config.max_frame_gap
         )
 
-    def _problem(self, geometry: TwoViewResult | None) -> str | None:
-        if geometry is None:
-            return "no essential matrix"
+    def _problem(self, geometry: BootstrapGeometry) -> str | None:
         inlier_ratio = geometry.inliers.mean()
         if inlier_ratio < self.config.min_inlier_ratio:
-            return f"essential matrix explains only {100 * inlier_ratio:.0f}% of the tracks"
+            return f"the two-view model explains only {100 * inlier_ratio:.0f}% of the tracks"
         if geometry.median_parallax_deg < self.config.min_median_parallax_deg:
             return f"median parallax {geometry.median_parallax_deg:.2f} deg is too small"
         if geometry.triangulated.sum() < self.config.min_landmarks:

@@ -10,6 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings
+from vo_core.geometry.multiview import PnPConfig
+from vo_core.geometry.two_view import TwoViewConfig
+
 
 @dataclass
 class CornerConfig:
@@ -37,27 +41,31 @@ class KltTrackerConfig:
 
 @dataclass
 class BootstrapConfig:
-    """Two-view initialization (paper II-A.1 and II-A.3)."""
+    """Two-view initialization (paper II-A.1 and II-A.3).
+
+    The relative pose comes from the project's one two-view reconstruction (vo_core/geometry/two_view.py:
+    homography or fundamental matrix chosen as ORB-SLAM does), where the paper runs an essential-matrix MSAC;
+    ``two_view`` holds its settings."""
 
     min_frame_gap: int = 2  # II-A.1: the first and third frames are the bootstrap pair
     max_frame_gap: int = 30  # give up on this first frame after this many frames and start again
     min_tracks: int = 50  # fewer surviving KLT tracks than this: restart from the current frame
     min_median_parallax_deg: float = 1.0  # retry with a later frame while the median bearing angle is below
-    ransac_threshold_px: float = 1.0  # Sampson distance of the essential-matrix RANSAC (MSAC in the paper)
-    ransac_confidence: float = 0.999
-    min_inlier_ratio: float = 0.5  # fewer essential-matrix inliers than this share of the tracks: retry
+    min_inlier_ratio: float = 0.5  # fewer model inliers than this share of the tracks: retry
     min_landmarks: int = 40  # fewer triangulated landmarks than this: retry with a later frame
+    two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
 
 
-@dataclass
-class PoseConfig:
+def _paper_003_pose() -> PnPConfig:
     """3D-2D pose (paper II-B.1: P3P inside MSAC, estimateWorldCameraPose), refined on the inliers."""
-
-    ransac_iterations: int = 200
-    ransac_threshold_px: float = 2.0  # reprojection error of an inlier
-    ransac_confidence: float = 0.999
-    min_inliers: int = 30  # fewer inliers than this is a tracking failure (re-bootstrap)
-    min_inlier_ratio: float = 0.3  # a tracking failure too, when fewer than this share of landmarks agree
+    return PnPConfig(
+        solver="p3p",  # II-B.1: P3P
+        ransac_iterations=200,
+        ransac_threshold_px=2.0,  # reprojection error of an inlier
+        ransac_confidence=0.999,
+        min_inliers=30,  # fewer inliers than this is a tracking failure (re-bootstrap)
+        min_inlier_ratio=0.3,  # a tracking failure too, when fewer than this share of landmarks agree
+    )
 
 
 @dataclass
@@ -82,13 +90,14 @@ class KeyframeConfig:
 
 
 @dataclass
-class BundleAdjustmentConfig:
-    """Sliding-window bundle adjustment (paper II-C: discussed, not implemented; the first poses are held)."""
+class BundleAdjustmentConfig(BundleAdjustmentSettings):
+    """Sliding-window bundle adjustment (paper II-C: discussed, not implemented; the first poses are held).
+
+    The solver's own settings are inherited: huber_px (2 px, Huber threshold of the reprojection residuals) and
+    max_iterations (10 Levenberg-Marquardt iterations, each a solve of the reduced camera system)."""
 
     window_keyframes: int = 7  # keyframes optimized together (DSO keeps 5-7)
     fixed_keyframes: int = 2  # the oldest ones are held: gauge freedom and scale (paper II-C)
-    huber_px: float = 2.0  # Huber threshold of the reprojection residuals (px)
-    max_iterations: int = 10  # Levenberg-Marquardt iterations (each a solve of the reduced camera system)
     max_outlier_px: float = 4.0  # landmarks reprojecting worse than this after the adjustment are culled
 
 
@@ -97,7 +106,7 @@ class KltConfig:
     corners: CornerConfig = field(default_factory=CornerConfig)
     tracker: KltTrackerConfig = field(default_factory=KltTrackerConfig)
     bootstrap: BootstrapConfig = field(default_factory=BootstrapConfig)
-    pose: PoseConfig = field(default_factory=PoseConfig)
+    pose: PnPConfig = field(default_factory=_paper_003_pose)  # the YAML section klt.pose
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     window_ba: bool = True  # run the sliding-window bundle adjustment at each keyframe

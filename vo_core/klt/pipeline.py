@@ -21,15 +21,14 @@ import cv2
 import numpy as np
 
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.geometry.bundle_adjustment import WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log, transform_points
+from vo_core.geometry.multiview import bearing_angles, estimate_pose, triangulate
 from vo_core.klt.bootstrap import Bootstrap, Bootstrapper
-from vo_core.klt.bundle_adjustment import WindowProblem, adjust_window
 from vo_core.klt.config import KltConfig
-from vo_core.klt.pose_estimation import estimate_pose
 from vo_core.klt.state import Keyframe, Landmarks, Tracks
 from vo_core.klt.tracking import KltTracker, detect_corners
-from vo_core.klt.triangulation import bearing_angles, triangulate
 
 RECENT_SPEED_FRAMES = 10  # frames whose median translation sets the scale of a re-bootstrap
 
@@ -41,7 +40,7 @@ class KltOdometry:
         self.seed = seed
         self.tracker = KltTracker(config.tracker)
         self.bootstrapper = Bootstrapper(
-            camera, config.bootstrap, config.corners, config.triangulation, config.ba, self.tracker
+            camera, config.bootstrap, config.corners, config.triangulation, config.ba, self.tracker, seed
         )
         self.bootstrapping = False
         self.landmarks = Landmarks()
@@ -159,7 +158,7 @@ class KltOdometry:
         with self._stage("pnp"):
             estimate = estimate_pose(
                 self.camera, self.landmarks.positions[self.tracks.ids[is_landmark]], self.tracks.uv[is_landmark],
-                self.config.pose, T_predicted,
+                self.config.pose, T_world_guess=T_predicted,
             )
         if estimate is None:
             return self._fail(frame, int(is_landmark.sum()))
@@ -273,7 +272,7 @@ class KltOdometry:
             rows = ready[t.first_keyframe[ready] == first_keyframe]
             points, valid = triangulate(
                 self.camera, self.keyframe_poses[first_keyframe], t.first_uv[rows], T_world_cam, t.uv[rows],
-                config.max_reprojection_px, config.min_depth,
+                max_reprojection_px=config.max_reprojection_px, min_depth=config.min_depth,
             )
             self.landmarks.set(t.ids[rows[valid]], points[valid])
             keep[rows[~valid]] = False

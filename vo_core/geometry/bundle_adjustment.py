@@ -1,6 +1,8 @@
-"""Sliding-window bundle adjustment: keyframe poses and landmark positions that minimize the robust sum of
-squared reprojection errors (Triggs et al. 2000; paper 003 II-C proposes it against scale drift, holding
-the first poses of the window).
+"""Windowed bundle adjustment: keyframe poses and landmark positions that minimize the robust sum of squared
+reprojection errors (Triggs et al. 2000). The KLT baseline runs it over a sliding window (paper 003 II-C proposes
+it against scale drift, holding the first poses of the window) and on its two bootstrap views; the feature
+initializer over its initialization window (paper 004 section 3.2). With every pose fixed, FDMO's structure-only
+adjustment (4.3) is vo_core/geometry/structure_only.py, which solves each point alone.
 
 Levenberg-Marquardt on the normal equations with the Schur complement of the points (Triggs et al. 2000,
 section 6.1; what g2o and Ceres do for bundle adjustment), and the Huber loss by iteratively reweighted
@@ -9,7 +11,7 @@ least squares. Each point has at most one observation per keyframe, so the point
 
 Why not scipy.optimize.least_squares: its trust-region solver with a sparse Jacobian (LSMR inner solves)
 stalled on perturbed windows with a robust loss (4.5 px RMS left after 50 evaluations on a window that this
-solver brings to the 0.5 px noise floor in a few iterations; see tests/test_klt_bundle_adjustment.py).
+solver brings to the 0.5 px noise floor in a few iterations; see tests/test_geometry_bundle_adjustment.py).
 
 Poses are world-to-camera transforms updated on the left, T_cam_world <- exp(delta) T_cam_world.
 """
@@ -23,7 +25,13 @@ from scipy.linalg import block_diag
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_exp, se3_inverse
-from vo_core.klt.config import BundleAdjustmentConfig
+from vo_core.geometry.reprojection import (
+    huber_cost_and_weights,
+    pose_jacobians,
+    project_points,
+    projection_jacobians,
+    sum_by,
+)
 
 LAMBDA_INITIAL = 1e-4  # Levenberg-Marquardt damping, relative to the diagonal of the normal equations
 LAMBDA_DOWN = 1.0 / 3.0  # after an accepted step
@@ -31,6 +39,15 @@ LAMBDA_UP = 4.0  # after a rejected one
 MAX_REJECTED_STEPS = 8  # in a row: the minimum is reached (to the solver's precision)
 MIN_RELATIVE_DECREASE = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
 DIAGONAL_FLOOR = 1e-9
+
+
+@dataclass
+class BundleAdjustmentSettings:
+    """The solver's settings (the KLT baseline's window adjustment extends them with its window; the feature
+    initializer's geometric adjustment sets its own)."""
+
+    huber_px: float = 2.0  # Huber threshold of the reprojection residuals (px)
+    max_iterations: int = 10  # Levenberg-Marquardt iterations (each a solve of the reduced camera system)
 
 
 @dataclass
@@ -54,24 +71,6 @@ class WindowSolution:
     iterations: int
 
 
-def _huber_cost_and_weights(errors: np.ndarray, k: float) -> tuple[float, np.ndarray]:
-    """Huber cost sum rho(e) with rho(e) = e^2 (e <= k), 2 k e - k^2 (e > k), and the IRLS weights
-    w = rho'(e) / (2 e) = min(1, k / e) that make the weighted Gauss-Newton step minimize it."""
-    inlier = errors <= k
-    cost = np.where(inlier, errors**2, 2.0 * k * errors - k**2).sum()
-    weights = np.where(inlier, 1.0, k / np.maximum(errors, 1e-12))
-    return float(cost), weights
-
-
-def _sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
-    """Sums of ``values`` (n, ...) grouped by ``index`` (n,) into (count, ...): one bincount for all entries."""
-    flat = values.reshape(len(values), -1)
-    width = flat.shape[1]
-    bins = (index[:, None] * width + np.arange(width)).ravel()
-    sums = np.bincount(bins, weights=flat.ravel(), minlength=count * width)
-    return sums.reshape((count, *values.shape[1:]))
-
-
 class _Window:
     """The reprojection model of a window, evaluated at given poses and points."""
 
@@ -87,26 +86,12 @@ class _Window:
         R = T_cam_world[problem.observation_pose, :3, :3]
         t = T_cam_world[problem.observation_pose, :3, 3]
         p = np.einsum("nij,nj->ni", R, points[problem.observation_point]) + t
-        c = self.camera
-        with np.errstate(divide="ignore", invalid="ignore"):
-            predicted = np.stack([c.fx * p[:, 0] / p[:, 2] + c.cx, c.fy * p[:, 1] / p[:, 2] + c.cy], axis=1)
-        return p, predicted - problem.observation_uv
+        return p, project_points(self.camera, p) - problem.observation_uv
 
     def jacobians(self, T_cam_world: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d(residual)/d(pose increment) (L, 2, 6) and d(residual)/d(point) (L, 2, 3)."""
-        c = self.camera
-        inv_z = 1.0 / p[:, 2]
-        n = len(p)
-        J_proj = np.zeros((n, 2, 3))  # pinhole projection derivative d(u, v)/d(x, y, z)
-        J_proj[:, 0, 0] = c.fx * inv_z
-        J_proj[:, 0, 2] = -c.fx * p[:, 0] * inv_z**2
-        J_proj[:, 1, 1] = c.fy * inv_z
-        J_proj[:, 1, 2] = -c.fy * p[:, 1] * inv_z**2
-        d_pose = np.zeros((n, 3, 6))  # d(exp(delta) p)/d(v, w) at delta = 0 is [I, -[p]x]
-        d_pose[:, :, :3] = np.eye(3)
-        d_pose[:, 0, 4], d_pose[:, 0, 5] = p[:, 2], -p[:, 1]
-        d_pose[:, 1, 3], d_pose[:, 1, 5] = -p[:, 2], p[:, 0]
-        d_pose[:, 2, 3], d_pose[:, 2, 4] = p[:, 1], -p[:, 0]
+        J_proj = projection_jacobians(self.camera, p)
+        d_pose = pose_jacobians(p)
         R = T_cam_world[self.problem.observation_pose, :3, :3]
         return J_proj @ d_pose, J_proj @ R
 
@@ -125,10 +110,10 @@ class _Window:
 
         wJp_T = wJp.transpose(0, 2, 1)
         wJl_T = wJl.transpose(0, 2, 1)
-        H_pp = _sum_by(a, wJp_T @ J_pose, F)  # (F, 6, 6)
-        V = _sum_by(j, wJl_T @ J_point, M)  # (M, 3, 3)
-        b_p = -_sum_by(a, (wJp_T @ residuals[:, :, None])[:, :, 0], F)  # (F, 6)
-        b_l = -_sum_by(j, (wJl_T @ residuals[:, :, None])[:, :, 0], M)  # (M, 3)
+        H_pp = sum_by(a, wJp_T @ J_pose, F)  # (F, 6, 6)
+        V = sum_by(j, wJl_T @ J_point, M)  # (M, 3, 3)
+        b_p = -sum_by(a, (wJp_T @ residuals[:, :, None])[:, :, 0], F)  # (F, 6)
+        b_l = -sum_by(j, (wJl_T @ residuals[:, :, None])[:, :, 0], M)  # (M, 3)
 
         # Marquardt's damping scales the diagonal; the floor keeps a block regular that no residual reaches.
         H_pp += (damping * np.einsum("fii->fi", H_pp) + DIAGONAL_FLOOR)[:, :, None] * np.eye(6)
@@ -157,18 +142,18 @@ class _Window:
         return delta_pose, delta_point
 
 
-def adjust_window(camera: PinholeCamera, problem: WindowProblem, config: BundleAdjustmentConfig) -> WindowSolution:
+def adjust_window(camera: PinholeCamera, problem: WindowProblem, settings: BundleAdjustmentSettings) -> WindowSolution:
     """Minimize sum rho_Huber(|pi(T_cam_world X) - uv|) over the free poses and all points."""
     window = _Window(camera, problem)
     T_cam_world = np.stack([se3_inverse(T) for T in problem.poses_world_cam])
     points = problem.points_world.copy()
     p, residuals = window.project(T_cam_world, points)
     errors_before = np.linalg.norm(residuals, axis=1)
-    cost, weights = _huber_cost_and_weights(errors_before, config.huber_px)
+    cost, weights = huber_cost_and_weights(errors_before, settings.huber_px)
     damping = LAMBDA_INITIAL
     rejected = 0
     iterations = 0
-    while iterations < config.max_iterations and rejected < MAX_REJECTED_STEPS:
+    while iterations < settings.max_iterations and rejected < MAX_REJECTED_STEPS:
         iterations += 1
         delta_pose, delta_point = window.step(T_cam_world, p, residuals, weights, damping)
         candidate_T = np.stack([se3_exp(d) @ T for d, T in zip(delta_pose, T_cam_world)])
@@ -178,7 +163,7 @@ def adjust_window(camera: PinholeCamera, problem: WindowProblem, config: BundleA
         if np.any(~(candidate_p[:, 2] > 0)) or not np.all(np.isfinite(errors)):
             candidate_cost = np.inf  # a point crossed behind a camera: too long a step
         else:
-            candidate_cost, candidate_weights = _huber_cost_and_weights(errors, config.huber_px)
+            candidate_cost, candidate_weights = huber_cost_and_weights(errors, settings.huber_px)
         if candidate_cost >= cost:
             damping *= LAMBDA_UP
             rejected += 1

@@ -1,4 +1,5 @@
-"""Two-view geometry as ORB-SLAM initializes (Mur-Artal et al. 2015, section IV; paper 004 section 3.2).
+"""Two-view reconstruction as ORB-SLAM initializes (Mur-Artal et al. 2015, section IV; paper 004 section 3.2): the
+one the project has, used by the feature initializer of the direct system and by the KLT baseline's bootstrap.
 
 A homography and a fundamental matrix are estimated in parallel by RANSAC over the same 8-point samples,
 each scored by its symmetric transfer error (004 eqs. 2-5); the homography wins when
@@ -21,10 +22,28 @@ import numpy as np
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3, se3_inverse
-from vo_core.init.config import TwoViewConfig
-from vo_core.klt.triangulation import bearing_angles, triangulate
+from vo_core.geometry.multiview import bearing_angles, triangulate
 
 MIN_CORRESPONDENCES = 8  # both minimal solvers use eight points
+
+
+@dataclass
+class TwoViewConfig:
+    """Homography and fundamental matrix in parallel (004 section 3.2, after ORB-SLAM IV)."""
+
+    ransac_iterations: int = 200  # ORB-SLAM: 200 sets of 8 correspondences, shared by both models
+    sample_size: int = 8  # ORB-SLAM: 8 points for both the normalized DLT (H) and the 8-point algorithm (F)
+    sigma_px: float = 1.0  # ORB-SLAM: measurement noise of one pixel
+    chi2_homography: float = 5.99  # 3.2 eq. 3: T_H (chi-square 95 %, 2 DOF)
+    chi2_fundamental: float = 3.84  # 3.2 eq. 3: T_F (chi-square 95 %, 1 DOF)
+    score_gamma: float = 5.99  # 3.2 eq. 3: Gamma = T_H, so both models score on the same scale
+    homography_ratio: float = 0.4  # 3.2 eq. 1: homography when S_H / (S_H + S_F) > 0.4
+    max_reprojection_px: float = 2.0  # ORB-SLAM CheckRT: squared error < 4 sigma^2 in both views
+    min_parallax_deg: float = 1.0  # ORB-SLAM Initialize(): minParallax = 1 degree
+    min_triangulated: int = 50  # ORB-SLAM: minTriangulated = 50 good points for a hypothesis
+    min_good_ratio: float = 0.9  # ORB-SLAM: the best hypothesis explains 90 % of the model's inliers
+    ambiguity_ratio: float = 0.75  # ORB-SLAM ReconstructH: second best < 0.75 best; ReconstructF uses 0.7
+    parallax_rank: int = 50  # ORB-SLAM CheckRT: the parallax of a hypothesis is its 50th largest angle
 
 
 @dataclass
@@ -55,9 +74,14 @@ class TwoViewResult:
     scores: ModelScores
     hypotheses_good: list[int]  # good points of every hypothesis, for the event
 
+    @property
+    def inliers(self) -> np.ndarray:
+        """(N,) bool: the correspondences the chosen model explains (triangulated or not)."""
+        return self.scores.inliers_h if self.model == "H" else self.scores.inliers_f
+
 
 class TwoViewFailure(Exception):
-    """No reliable relative pose; the message says why (it goes into the initializer's status)."""
+    """No reliable relative pose; the message says why (it goes into the caller's status or event)."""
 
 
 # ------------------------------------------------------------------------------------------ estimation
@@ -141,7 +165,9 @@ def _scores(
     return score, inliers
 
 
-def estimate_models(uv_first: np.ndarray, uv_second: np.ndarray, config: TwoViewConfig, rng: np.random.Generator) -> ModelScores:
+def estimate_models(
+    uv_first: np.ndarray, uv_second: np.ndarray, config: TwoViewConfig, rng: np.random.Generator
+) -> ModelScores:
     """Homography and fundamental matrix by RANSAC on the same samples, each the best scored of its kind."""
     n = len(uv_first)
     if n < MIN_CORRESPONDENCES:
@@ -184,7 +210,8 @@ def _check_motion(
     t = t.ravel() / max(np.linalg.norm(t), 1e-12)
     T_first_second = se3_inverse(se3(R, t))
     points, valid = triangulate(
-        camera, np.eye(4), uv_first, T_first_second, uv_second, config.max_reprojection_px, 0.0
+        camera, np.eye(4), uv_first, T_first_second, uv_second, max_reprojection_px=config.max_reprojection_px,
+        min_depth=0.0,
     )
     good = valid & inliers
     parallax = 0.0

@@ -1,4 +1,4 @@
-"""The KLT baseline's windowed bundle adjustment on a perturbed window of known geometry."""
+"""The windowed bundle adjustment (vo_core/geometry/bundle_adjustment.py) on a perturbed window of known geometry."""
 
 from __future__ import annotations
 
@@ -7,8 +7,7 @@ import pytest
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3, se3_exp, se3_inverse, so3_exp, transform_points
-from vo_core.klt.bundle_adjustment import WindowProblem, adjust_window
-from vo_core.klt.config import BundleAdjustmentConfig
+from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 
 CAMERA = PinholeCamera(320, 240, fx=250.0, fy=250.0, cx=159.5, cy=119.5)
 NUM_KEYFRAMES = 6
@@ -50,7 +49,7 @@ def position_errors(poses_a: np.ndarray, poses_b: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("outliers", [0, 40])
 def test_adjustment_recovers_a_perturbed_window(outliers):
     poses, points, problem, corrupted = make_window(seed=1, outliers=outliers)
-    solution = adjust_window(CAMERA, problem, BundleAdjustmentConfig())
+    solution = adjust_window(CAMERA, problem, BundleAdjustmentSettings())
 
     clean = np.ones(len(problem.observation_uv), bool)
     clean[corrupted] = False
@@ -79,6 +78,6 @@ def test_adjustment_leaves_an_exact_window_alone():
             + np.stack([se3_inverse(T) for T in poses])[problem.observation_pose, :3, 3]
         ),
     )
-    solution = adjust_window(CAMERA, exact, BundleAdjustmentConfig())
+    solution = adjust_window(CAMERA, exact, BundleAdjustmentSettings())
     assert np.max(solution.errors_after) < 1e-6
     assert np.max(position_errors(solution.poses_world_cam, poses)) < 1e-9
