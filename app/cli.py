@@ -1,12 +1,15 @@
-"""The command line: ``fdmo run | eval | info``.
+"""The command line: ``fdmo run | eval | info | plot``.
 
     fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
-             [--start N] [--end N] [--drop FRAME:COUNT ...] [--rrd FILE | --no-rrd] [--viser [--port P]] [--quiet]
+             [--start N] [--end N] [--drop FRAME:COUNT ...] [--gt FILE] [--rrd FILE | --no-rrd]
+             [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
+    fdmo plot RESULT_DIR [--out FILE] [--gt FILE] [--align sim3|se3|none] [--plane xy|xz|yz]
 
-Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted.
-The viewers are imported only when asked for, so a headless run never loads viser.
+Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
+when the reader of the output went away (``fdmo info X | head``). The viewers and matplotlib are imported only
+when asked for, so a headless run never loads viser.
 """
 
 from __future__ import annotations
@@ -14,24 +17,31 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import signal
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterator, Sequence as SequenceOf
 from pathlib import Path
 from typing import Any, NoReturn
 
-from vo_core.config import METHODS, load_config
+from app.plot import DEFAULT_PLOT_FILE, PLANES
+from vo_core.config import METHODS, Config, load_config
+from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
 from vo_core.errors import InputError
+from vo_core.eval import ALIGNMENTS, DEFAULT_MAX_DT_S
+from vo_core.events import EventKind
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT
+EXIT_BROKEN_PIPE = 141  # the shell's convention for SIGPIPE, as a tool killed by it reports
 DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
+DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
-ALIGNMENTS = ("sim3", "se3", "none")
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -70,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = commands.add_parser("run", help="run the odometry over a sequence and write the result files")
     run.add_argument("source", nargs="?", help="dataset folder or video (default: the bundled sequence)")
     run.add_argument("--out", type=Path, help="results folder (default: results/<sequence>_<time>/)")
-    run.add_argument("--method", choices=METHODS, help="overrides the configuration's method")
+    run.add_argument("--method", choices=METHODS, help=_method_help())
     run.add_argument("--config", type=Path, help="YAML configuration (the format of config.yaml)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one setting, e.g. --set direct.tracker.huber_threshold=9 (repeatable)")
@@ -82,7 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
     run.add_argument("--viser", action="store_true", help="live browser view; stays up until Ctrl-C")
-    run.add_argument("--port", type=_port, default=DEFAULT_VISER_PORT, help="port of the viser page")
+    run.add_argument("--host", default=DEFAULT_VISER_HOST,
+                     help="address the viser page listens on (default: %(default)s, this machine only; "
+                          "0.0.0.0 for every network interface)")
+    run.add_argument("--port", type=_port, default=DEFAULT_VISER_PORT,
+                     help="port of the viser page (default: %(default)s)")
     run.add_argument("--quiet", action="store_true", help="no progress bar and no summary")
     _add_source_options(run)
 
@@ -90,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("estimate", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
     evaluate.add_argument("ground_truth", type=Path, help="trajectory file (TUM, KITTI or EuRoC CSV)")
     evaluate.add_argument("--align", choices=ALIGNMENTS, default="sim3", help="alignment before the errors")
-    evaluate.add_argument("--max-dt", type=float, default=0.02,
+    evaluate.add_argument("--max-dt", type=float, default=DEFAULT_MAX_DT_S,
                           help="largest timestamp difference of an associated pair, seconds (TUM's associate.py)")
     evaluate.add_argument("--json", action="store_true", help="print JSON")
 
@@ -98,12 +112,30 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("source", help="dataset folder or video")
     info.add_argument("--json", action="store_true", help="print JSON")
     _add_source_options(info)
+
+    plot = commands.add_parser("plot", help="draw a run against its ground truth (PNG)")
+    plot.add_argument("result_dir", type=Path, metavar="RESULT_DIR", help="a results folder of fdmo run")
+    plot.add_argument("--out", type=Path, help="PNG file (default: <RESULT_DIR>/plot.png)")
+    plot.add_argument("--gt", type=Path, metavar="FILE", help="ground truth (default: the run's groundtruth.tum)")
+    plot.add_argument("--align", choices=ALIGNMENTS, default="sim3", help="alignment before the errors")
+    plot.add_argument("--plane", choices=PLANES, help="plane of the top view (default: the ground truth's widest)")
     return parser
 
 
+def _method_help() -> str:
+    import vo_core.system  # read when the parser is built: methods land there as they are implemented
+
+    text = f"overrides the configuration's method (default: {Config.method})"
+    unavailable = [method for method in METHODS if method not in vo_core.system.IMPLEMENTED_METHODS]
+    return text + (f"; not available yet: {', '.join(unavailable)}" if unavailable else "")
+
+
 def _add_source_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--format", dest="layout", metavar="LAYOUT", help="force the dataset layout")
-    parser.add_argument("--camera", type=Path, help="camera YAML for image folders and videos")
+    parser.add_argument("--format", dest="layout", choices=LAYOUTS, help="force the dataset layout (default: detected)")
+    parser.add_argument("--camera", type=Path, help="camera YAML or DSO camera.txt: replaces the dataset's calibration")
+    parser.add_argument("--gt", type=Path, metavar="FILE",
+                        help="ground truth (TUM, KITTI with a line per image, or EuRoC CSV; camera-to-world poses): "
+                             "replaces the dataset's, for the evaluation and the viewers")
 
 
 # ------------------------------------------------------------------------------------------------ run
@@ -115,32 +147,37 @@ def command_run(args: argparse.Namespace) -> int:
 
     overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
-    sequence = open_dataset(_source(args.source), config.dataset, args.layout, args.camera, args.start, args.end)
+    source = DEFAULT_SEQUENCE if args.source is None else Path(args.source)
+    sequence = open_dataset(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
     out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
     _check_drops(args.drops, sequence.indices)
     player = Player(sequence, args.drops)
-    sinks = []  # run_sequence closes them
-    if not args.no_rrd:
-        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence))
-    if args.viser:
-        sinks.append(_viser_view(sequence, player, args.port))
+    sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
     try:
-        with _sigterm_as_interrupt():
-            summary = run_sequence(sequence, config, out_dir, sinks, player=player,
-                                   show_progress=not args.quiet, keep_alive=args.viser)
-    except KeyboardInterrupt:
-        # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
-        print(f"\nfdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
-        return EXIT_OK if args.viser else EXIT_INTERRUPTED
+        summary = _until_signalled(player, lambda: run_sequence(
+            sequence, config, out_dir, sinks, player=player, show_progress=not args.quiet, keep_alive=args.viser))
     finally:
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
-    if not args.quiet:
+    if summary is not None and not args.quiet:
         print(_summary_text(summary.metrics, out_dir))
+    if summary is None or player.interrupted:
+        # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
+        print(f"fdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
+        return EXIT_OK if args.viser else EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def _sinks(args: argparse.Namespace, sequence, player, out_dir: Path) -> list:
+    sinks = []
+    if not args.no_rrd:
+        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence))
+    if args.viser:
+        sinks.append(_viser_view(sequence, player, args.host, args.port))
+    return sinks
 
 
 def _check_drops(drops: list[tuple[int, int]], frame_indices) -> None:
@@ -153,20 +190,39 @@ def _check_drops(drops: list[tuple[int, int]], frame_indices) -> None:
 
 
 @contextlib.contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM (a timeout, a job scheduler) ends a run like Ctrl-C does, so the result files get finished."""
+def _signals_end_the_run(player) -> Iterator[None]:
+    """Ctrl-C (SIGINT) and SIGTERM (a timeout, a job scheduler) end the run between two frames: the frame being
+    tracked finishes, then the result files. The handler only tells the player; raising KeyboardInterrupt instead
+    would often land inside a compiled kernel, where numba turns it into a SystemError. A second signal stops at
+    once (a frame can take long: the first run compiles the kernels)."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield  # only the main thread may set signal handlers
         return
 
-    def interrupt(signum, frame):
-        raise KeyboardInterrupt
+    def handle(signum, frame):
+        if player.interrupted:
+            raise KeyboardInterrupt
+        player.interrupt()
 
-    previous = signal.signal(signal.SIGTERM, interrupt)
+    previous = {number: signal.signal(number, handle) for number in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
+def _until_signalled(player, run):
+    """``run()``'s summary, or None when a second signal stopped the run mid-frame (its files are finished all
+    the same: the pipeline writes them in a ``finally``)."""
+    try:
+        with _signals_end_the_run(player):
+            return run()
+    except (KeyboardInterrupt, SystemError) as error:
+        # Raised inside a numba kernel, a KeyboardInterrupt surfaces as a SystemError caused by it.
+        if isinstance(error, KeyboardInterrupt) or isinstance(error.__cause__, KeyboardInterrupt):
+            return None
+        raise
 
 
 def _default_out_dir(sequence_name: str) -> Path:
@@ -181,19 +237,6 @@ def _link_latest(out_dir: Path) -> None:
         latest.symlink_to(out_dir.name, target_is_directory=True)
 
 
-def _source(source: str | None) -> Path:
-    if source is not None:
-        return Path(source)
-    from vo_core.datasets import DEFAULT_SEQUENCE
-
-    if not DEFAULT_SEQUENCE.is_dir():
-        raise InputError(
-            f"{DEFAULT_SEQUENCE}: the bundled sequence lives in the repository's assets/; "
-            "install from a clone with `pip install -e .`, or give a SOURCE"
-        )
-    return Path(DEFAULT_SEQUENCE)
-
-
 def _rerun_sink(path: Path, sequence):
     from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
 
@@ -201,26 +244,50 @@ def _rerun_sink(path: Path, sequence):
     return RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth, recording_name=sequence.name)
 
 
-def _viser_view(sequence, player, port: int):
+def _viser_view(sequence, player, host: str, port: int):
     from app.sinks.viser_view import ViserView  # imported here: a headless run never loads viser
 
-    view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, port=port)
+    view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, host=host, port=port)
     print(f"fdmo: live view at {view.url} (Ctrl-C to quit)", file=sys.stderr)
     return view
 
 
 def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
+    initialized = metrics["initialization_frame"]
     lines = [
         f"{metrics['sequence']} ({metrics['method']}, {metrics['status']}): "
         f"tracked {metrics['tracked_frames']}/{metrics['processed_frames']} frames, "
-        f"initialized at frame {metrics['initialization_frame']}, "
-        f"{metrics['fps'] or 0.0:.1f} fps",
+        f"{'never initialized' if initialized is None else f'initialized at frame {initialized}'}, "
+        f"{_counted(metrics['keyframes'], 'keyframe', 'keyframes')}, {metrics['fps'] or 0.0:.1f} fps",
     ]
+    incidents = _incidents(metrics)
+    if incidents:
+        lines.append("  " + ", ".join(incidents))
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
     lines.append(f"  results in {out_dir}")
     return "\n".join(lines)
+
+
+def _incidents(metrics: dict[str, Any]) -> list[str]:
+    """What befell the run, each kind that happened with its count: frames it did not see, failures, recoveries."""
+    events = Counter(metrics["events"])
+    recovered, unrecovered = events[EventKind.RECOVERY_SUCCEEDED.value], events[EventKind.RECOVERY_FAILED.value]
+    outcome = f"({recovered} succeeded, {unrecovered} failed)"
+    counts = [
+        (metrics["skipped_frames"], "unreadable frame skipped", "unreadable frames skipped"),
+        (metrics["dropped_frames"], "frame dropped", "frames dropped"),
+        (events[EventKind.TRACKING_FAILED.value], "tracking failure", "tracking failures"),
+        (events[EventKind.DIVERGENCE_DETECTED.value], "divergence", "divergences"),
+        (recovered + unrecovered, f"recovery {outcome}", f"recoveries {outcome}"),
+        (events[EventKind.REINITIALIZATION.value], "reinitialization", "reinitializations"),
+    ]
+    return [_counted(count, one, many) for count, one, many in counts if count]
+
+
+def _counted(count: int, one: str, many: str) -> str:
+    return f"{count} {one if count == 1 else many}"
 
 
 def _evaluation_line(evaluation: dict[str, Any]) -> str:
@@ -246,8 +313,18 @@ def command_eval(args: argparse.Namespace) -> int:
 def command_info(args: argparse.Namespace) -> int:
     from vo_core.datasets import open_sequence
 
-    description = open_sequence(Path(args.source), layout=args.layout, camera_file=args.camera).describe()
+    sequence = open_sequence(Path(args.source), layout=args.layout, camera_file=args.camera, ground_truth_file=args.gt)
+    description = sequence.describe()
     print(json.dumps(description, indent=2) if args.json else _as_text(description))
+    return EXIT_OK
+
+
+def command_plot(args: argparse.Namespace) -> int:
+    from app.plot import plot_run
+
+    out = args.out or args.result_dir / DEFAULT_PLOT_FILE
+    print(plot_run(args.result_dir, out, args.gt, args.align, args.plane))
+    print(f"wrote {out}")
     return EXIT_OK
 
 
@@ -276,7 +353,7 @@ def _short(value: Any) -> str:
 
 # ------------------------------------------------------------------------------------------------ main
 
-COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info}
+COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plot": command_plot}
 
 
 def main(argv: SequenceOf[str] | None = None) -> int:
@@ -286,6 +363,14 @@ def main(argv: SequenceOf[str] | None = None) -> int:
     except InputError as error:
         print(f"fdmo: error: {_one_line(str(error))}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except KeyboardInterrupt:  # outside a run's frames (opening a video, building the odometry): nothing to finish
+        print("fdmo: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # The reader of the output went away (`fdmo info X | head`): no error of ours. stdout now points nowhere,
+        # or the interpreter's last flush of it would fail again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 def _one_line(message: str) -> str:

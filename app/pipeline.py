@@ -25,7 +25,7 @@ from app.sinks.files import FilesSink
 from vo_core.config import Config, DatasetConfig
 from vo_core.datasets import open_sequence
 from vo_core.errors import InputError
-from vo_core.eval import evaluate
+from vo_core.eval import DEFAULT_MAX_DT_S, evaluate
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory
@@ -36,7 +36,7 @@ MIN_POSES_TO_EVALUATE = 3  # a Sim(3) alignment needs three non-collinear positi
 COMPLETED = "completed"  # the end of the sequence was reached
 STOPPED = "stopped"  # player.stop() (a viewer or the caller)
 RESTARTED = "restarted"  # a restart was requested; the next pass starts over
-INTERRUPTED = "interrupted"  # Ctrl-C or an exception
+INTERRUPTED = "interrupted"  # player.interrupt() (Ctrl-C, SIGTERM) or an exception
 
 
 @dataclass
@@ -65,11 +65,12 @@ class RunSummary:
 
 
 def open_dataset(source: str | Path, dataset: DatasetConfig, layout: str | None = None,
-                 camera_file: str | Path | None = None, start: int | None = None, end: int | None = None):
+                 camera_file: str | Path | None = None, start: int | None = None, end: int | None = None,
+                 ground_truth_file: str | Path | None = None):
     """Open a sequence with the dataset settings of the configuration, cut to frames start..end-1."""
     sequence = open_sequence(
         source, layout=layout, camera_file=camera_file, undistort_output=dataset.undistort_output,
-        on_bad_image=dataset.on_bad_image, read_ahead=dataset.read_ahead,
+        on_bad_image=dataset.on_bad_image, read_ahead=dataset.read_ahead, ground_truth_file=ground_truth_file,
     )
     if start is not None or end is not None:
         sequence = sequence.cut(start, end)
@@ -142,7 +143,8 @@ class _Run:
         started = time.perf_counter()
         try:
             self._play(player)
-            status = COMPLETED if player.finished else RESTARTED if player.restart_requested else STOPPED
+            status = (COMPLETED if player.finished else RESTARTED if player.restart_requested
+                      else INTERRUPTED if player.interrupted else STOPPED)
         finally:
             summary = self._finish(status, time.perf_counter() - started)
         return summary
@@ -162,6 +164,8 @@ class _Run:
     def _finish(self, status: str, wall_s: float) -> RunSummary:
         snapshot = self.odometry.map_snapshot()
         self.files.write_keyframes(snapshot.keyframe_poses)
+        self.files.write_maps(snapshot)
+        self.files.write_ground_truth(self._ground_truth_of_the_run())
         metrics = {
             "sequence": self.sequence.name,
             "layout": getattr(self.sequence, "layout", None),
@@ -176,6 +180,15 @@ class _Run:
         }
         self.files.write_metrics(metrics)
         return RunSummary(self.files.out_dir, metrics)
+
+    def _ground_truth_of_the_run(self) -> Trajectory | None:
+        """The sequence's ground truth over the time of the frames played, with the association's tolerance on
+        either side: evaluating trajectory.tum against it gives the ATE of metrics.json."""
+        ground_truth = getattr(self.sequence, "ground_truth", None)
+        if ground_truth is None:
+            return None
+        timestamps = self.sequence.timestamps
+        return ground_truth.within(timestamps.min() - DEFAULT_MAX_DT_S, timestamps.max() + DEFAULT_MAX_DT_S)
 
     def close(self) -> None:
         self.odometry.close()
@@ -199,7 +212,6 @@ class _Statistics:
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self.processed += 1
         self.tracked += bool(result.tracked)
-        self.keyframes += bool(result.is_keyframe)
         if result.T_world_cam is not None:
             self.timestamps.append(result.timestamp)
             self.poses.append(result.T_world_cam)
@@ -210,6 +222,9 @@ class _Statistics:
 
     def on_event(self, event: Event) -> None:
         self.events[event.kind.value] += 1
+        # Counted by event, not by FrameResult.is_keyframe: an initializer makes its first frame a keyframe only
+        # once it succeeds, frames later.
+        self.keyframes += event.kind is EventKind.KEYFRAME_ADDED
         if event.kind is EventKind.INITIALIZATION_SUCCEEDED and self.initialization_frame is None:
             self.initialization_frame = event.frame_index
         if event.kind is EventKind.FRAMES_DROPPED:

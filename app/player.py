@@ -51,6 +51,7 @@ class Player:
         self._drop_requests: deque[_DropRequest] = deque()
         self._restart_requested = False
         self._stopped = False
+        self._interrupted = False
         self._finished = False
         self._pace_anchor: tuple[float, float] | None = None  # (wall clock, dataset timestamp)
 
@@ -68,6 +69,11 @@ class Player:
     @property
     def stopped(self) -> bool:
         return self._stopped
+
+    @property
+    def interrupted(self) -> bool:
+        """True once ``interrupt()`` was called (a stop signal)."""
+        return self._interrupted
 
     @property
     def restart_requested(self) -> bool:
@@ -114,6 +120,12 @@ class Player:
     def stop(self) -> None:
         """End playback for good (the pass ends at the next frame, a pending wait returns)."""
         self._update(_stopped=True)
+
+    def interrupt(self) -> None:
+        """``stop()`` for a signal handler. A handler runs in the main thread between two of its bytecodes, maybe
+        while that thread holds the player's lock: so no lock here, two plain assignments; every wait polls them."""
+        self._interrupted = True
+        self._stopped = True
 
     def wait_for_restart(self) -> bool:
         """Block until a restart is requested (True) or the player is stopped (False)."""

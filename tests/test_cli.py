@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
 import subprocess
 import sys
 import threading
@@ -24,8 +26,9 @@ from app.pipeline import run_sequence
 from app.player import Player
 from app.progress import ProgressBar
 from app.sinks.files import RESULT_FILES
-from vo_core.config import load_config
-from vo_core.datasets import open_sequence
+from ply_reader import read_ply
+from vo_core.config import METHODS, load_config
+from vo_core.datasets import LAYOUTS, open_sequence
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.lie import se3_exp, sim3, so3_exp
 from vo_core.synthetic import make_sequence
@@ -72,16 +75,26 @@ class ScriptedFrontEnd:
 
     instances: list["ScriptedFrontEnd"] = []
 
-    def __init__(self, interrupt_at: int | None = None):
+    def __init__(self, interrupt_at: int | None = None, at_frame=None, events_at=None, snapshot=None):
         self.seen: list[int] = []
         self.keyframes: dict[int, np.ndarray] = {}
         self.interrupt_at = interrupt_at
+        self.at_frame = at_frame or {}  # frame index -> a function called as that frame is processed
+        self.events_at = events_at or {}  # frame index -> kinds of the events it reports
+        self.snapshot = snapshot or MapSnapshot()
         ScriptedFrontEnd.instances.append(self)
 
     def process(self, frame) -> FrameResult:
         assert frame.image.shape == (HEIGHT, WIDTH)
         if frame.index == self.interrupt_at:
             raise KeyboardInterrupt
+        if frame.index in self.at_frame:
+            self.at_frame[frame.index]()
+        result = self._result(frame)
+        result.events += [Event(kind, frame.index, frame.timestamp) for kind in self.events_at.get(frame.index, ())]
+        return result
+
+    def _result(self, frame) -> FrameResult:
         self.seen.append(frame.index)
         if len(self.seen) < 3:
             return FrameResult(frame.index, frame.timestamp, None, False, timings_ms={"track": 1.0})
@@ -94,7 +107,8 @@ class ScriptedFrontEnd:
         return FrameResult(frame.index, frame.timestamp, T, True, keyframe, timings_ms={"track": 2.0}, events=events)
 
     def map_snapshot(self) -> MapSnapshot:
-        return MapSnapshot(keyframe_poses=dict(self.keyframes))
+        return MapSnapshot(self.snapshot.direct_points_world, self.snapshot.direct_inverse_depths,
+                           self.snapshot.feature_points_world, dict(self.keyframes))
 
 
 @pytest.fixture
@@ -243,13 +257,19 @@ def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request
     [
         (["run", "{missing}"], "no such file"),
         (["run", "{dataset}", "--method", "orbslam"], "invalid choice"),
-        (["run", "{dataset}", "--method", "fdmo"], "not implemented"),
         (["run", "{dataset}", "--set", "seed"], "expected key=value"),
         (["run", "{dataset}", "--set", "klt.nonsense=1"], "unknown config key"),
         (["run", "{dataset}", "--drop", "5"], "FRAME:COUNT"),
         (["run", "{dataset}", "--drop", "40:2"], "not among the frames played (0..11)"),
         (["run", "{dataset}", "--viser", "--port", "70000"], "between 1 and 65535"),
-        (["run", "{dataset}", "--format", "nonsense"], "unknown layout"),
+        (["run", "{dataset}", "--format", "nonsense"], "invalid choice: 'nonsense'"),
+        (["run", "{dataset}", "--set", "direct.tracker.huber_threshold=abc"], "cannot read 'abc' as a number"),
+        (["run", "{dataset}", "--set", "seed=2.5"], "cannot read 2.5 as an integer"),
+        (["run", "{dataset}", "--set", "direct.window.enabled=maybe"], "cannot read 'maybe' as true or false"),
+        (["run", "{dataset}", "--set", "direct.tracker.max_iterations=5"], "cannot read 5 as a list"),
+        (["run", "{dataset}", "--set", "seed=[1"], "malformed YAML"),
+        (["run", "{dataset}", "--gt", "{missing}"], "trajectory file not found"),
+        (["plot", "{empty}"], "not a results folder"),
         (["info", "{empty}"], "unknown dataset layout"),
         (["eval", "{missing}", "{missing}"], "missing"),
         (["frobnicate"], "invalid choice"),
@@ -264,6 +284,184 @@ def test_bad_input_exits_2_with_one_line(argv, message, dataset, tmp_path, capsy
     assert code == 2
     assert len(stderr.strip().splitlines()) == 1 and stderr.startswith("fdmo: error:") and message in stderr
     assert not (tmp_path / "out").exists()  # nothing half-written
+
+
+def test_a_method_that_is_not_available_is_refused_with_one_line(dataset, tmp_path, capsys):
+    unavailable = [method for method in METHODS if method not in vo_core.system.IMPLEMENTED_METHODS]
+    if not unavailable:
+        pytest.skip("every method is implemented")
+    code, _, stderr = run_cli(capsys, "run", dataset, "--method", unavailable[0], "--out", tmp_path / "out")
+    assert code == 2 and stderr.count("\n") == 1 and "not implemented" in stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_help_lists_the_layouts_the_port_default_and_the_methods_not_available(capsys, monkeypatch):
+    monkeypatch.setattr(vo_core.system, "IMPLEMENTED_METHODS", ("direct", "klt"))
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines anywhere
+    assert exit_info.value.code == 0
+    assert "{" + ",".join(LAYOUTS) + "}" in text
+    assert "port of the viser page (default: 8080)" in text and "(default: 127.0.0.1" in text
+    assert "not available yet: fdmo, features" in text
+    monkeypatch.setattr(vo_core.system, "IMPLEMENTED_METHODS", METHODS)
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    assert "not available" not in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------------------------ summary
+
+
+def test_the_summary_names_what_befell_the_run(dataset, tmp_path, scripted, capsys):
+    broken = tmp_path / "broken"
+    subprocess.run(["cp", "-r", str(dataset), str(broken)], check=True)
+    (broken / "images" / "img_00004.png").write_bytes(b"not a png")
+    scripted[1]["events_at"] = {
+        6: [EventKind.DIVERGENCE_DETECTED, EventKind.RECOVERY_TRIED, EventKind.RECOVERY_SUCCEEDED],
+        7: [EventKind.DIVERGENCE_DETECTED, EventKind.RECOVERY_FAILED, EventKind.TRACKING_FAILED,
+            EventKind.REINITIALIZATION],
+        8: [EventKind.KEYFRAME_ADDED],
+    }
+    code, stdout, _ = run_cli(capsys, "run", broken, "--out", tmp_path / "r", "--no-rrd", "--drop", "9:2")
+    assert code == 0
+    assert "(direct, completed): tracked 7/9 frames, initialized at frame 2, 1 keyframe," in stdout
+    assert ("1 unreadable frame skipped, 2 frames dropped, 1 tracking failure, 2 divergences, "
+            "2 recoveries (1 succeeded, 1 failed), 1 reinitialization") in stdout
+    assert "ATE rmse" in stdout and f"results in {tmp_path / 'r'}" in stdout
+
+
+def test_the_summary_says_never_initialized_and_names_nothing_that_did_not_happen(dataset, tmp_path, scripted,
+                                                                                  capsys):
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--end", "2")
+    assert code == 0 and "never initialized" in stdout and "frame None" not in stdout
+    assert not any(word in stdout for word in ("skipped", "dropped", "failure", "divergence", "recover"))
+
+
+def test_keyframes_are_counted_by_their_events(dataset, tmp_path, scripted, capsys):
+    """An initializer announces its first keyframe frames after that frame was tracked: metrics.json counts the
+    keyframe_added events, as keyframes.tum lists them, not the frames flagged as keyframes when tracked."""
+    scripted[1]["events_at"] = {i: [EventKind.KEYFRAME_ADDED] for i in (3, 5, 9)}
+    assert run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--quiet")[0] == 0
+    assert json.loads((tmp_path / "r" / "metrics.json").read_text())["keyframes"] == 3
+
+
+# ------------------------------------------------------------------------------------------ signals
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_ends_the_run_after_the_current_frame_with_a_summary_and_130(dataset, tmp_path, scripted, capsys,
+                                                                              signum):
+    scripted[1]["at_frame"] = {6: lambda: os.kill(os.getpid(), signum)}
+    out = tmp_path / "results"
+    code, stdout, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd")
+    assert code == 130 and stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
+    assert scripted[0][-1].seen == list(range(7))  # frame 6, during which the signal came, was finished
+    assert "(direct, interrupted): tracked 5/7 frames" in stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["processed_frames"] == 7
+    assert len(read_trajectory(out / "trajectory.tum")) == 5
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handlers are given back
+
+
+def test_a_second_signal_stops_at_once_and_still_exits_130(dataset, tmp_path, scripted, capsys):
+    def twice():
+        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    scripted[1]["at_frame"] = {6: twice}
+    out = tmp_path / "results"
+    code, _, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet")
+    assert code == 130 and stderr.strip() == f"fdmo: interrupted; results in {out}"
+    assert json.loads((out / "metrics.json").read_text())["status"] == "interrupted"
+
+
+def test_an_interrupt_inside_a_compiled_kernel_exits_130(dataset, tmp_path, scripted, capsys):
+    """numba reports a KeyboardInterrupt raised inside a kernel as a SystemError caused by it."""
+    def kernel_interrupted():
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as error:
+            raise SystemError("CPUDispatcher(<function kernel>) returned a result with an exception set") from error
+
+    scripted[1]["at_frame"] = {6: kernel_interrupted}
+    out = tmp_path / "results"
+    code, _, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet")
+    assert code == 130 and stderr.strip() == f"fdmo: interrupted; results in {out}"
+    assert json.loads((out / "metrics.json").read_text())["status"] == "interrupted"
+
+
+# ------------------------------------------------------------------------------------------ outputs
+
+
+def test_ground_truth_of_the_run_is_written_and_evaluates_as_metrics_json(dataset, tmp_path, scripted, capsys):
+    out = tmp_path / "r"
+    assert run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--start", "1", "--end", "9")[0] == 0
+    ground_truth = read_trajectory(out / "groundtruth.tum")
+    np.testing.assert_allclose(ground_truth.timestamps, np.arange(1, 9) * VAMR_INTERVAL_S, atol=1e-9)
+    np.testing.assert_allclose(ground_truth.poses, [true_pose(i) for i in range(1, 9)], atol=1e-6)
+    _, evaluation, _ = run_cli(capsys, "eval", out / "trajectory.tum", out / "groundtruth.tum", "--json")
+    metrics = json.loads((out / "metrics.json").read_text())
+    evaluation = json.loads(evaluation)  # the files keep 9 decimals: ATE to 1e-8
+    assert evaluation["matched_poses"] == metrics["evaluation"]["matched_poses"] == 6
+    assert evaluation["ate"] == pytest.approx(metrics["evaluation"]["ate"], abs=1e-8)
+
+
+def test_maps_are_written_as_ply_the_empty_ones_not(dataset, tmp_path, scripted, capsys):
+    rng = np.random.default_rng(1)
+    direct = rng.normal(size=(50, 3))
+    direct[7] = np.nan  # a point no viewer can draw
+    scripted[1]["snapshot"] = MapSnapshot(direct, rng.uniform(0.2, 2.0, 50), np.zeros((0, 3)))
+    out = tmp_path / "r"
+    assert run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet")[0] == 0
+    points, colors = read_ply(out / "map_direct.ply")
+    np.testing.assert_allclose(points, np.delete(direct, 7, axis=0), rtol=1e-6)
+    assert colors.shape == (49, 3) and len(np.unique(colors, axis=0)) > 1  # colored by inverse depth
+    assert not (out / "map_features.ply").exists()
+
+
+def test_gt_option_gives_ground_truth_to_ones_own_data(dataset, tmp_path, scripted, capsys):
+    own = tmp_path / "own"
+    subprocess.run(["cp", "-r", str(dataset / "images"), str(own)], check=True)
+    (own / "camera.yaml").write_text(f"model: pinhole\nintrinsics: [100, 100, {(WIDTH - 1) / 2}, {(HEIGHT - 1) / 2}]\n"
+                                     f"resolution: [{WIDTH}, {HEIGHT}]\n")
+    truth = Trajectory(np.arange(FRAMES) * VAMR_INTERVAL_S, np.array([true_pose(i) for i in range(FRAMES)]))
+    write_trajectory(tmp_path / "gt.tum", truth, "tum")
+    write_trajectory(tmp_path / "gt.kitti", truth, "kitti")  # no timestamps: a line per image
+    for name in ("gt.tum", "gt.kitti"):
+        out = tmp_path / name.replace(".", "_")
+        assert run_cli(capsys, "run", own, "--out", out, "--no-rrd", "--quiet", "--gt", tmp_path / name)[0] == 0
+        metrics = json.loads((out / "metrics.json").read_text())
+        assert metrics["evaluation"]["matched_poses"] == FRAMES - 2 and metrics["evaluation"]["ate"]["rmse"] < 1e-6
+        assert (out / "groundtruth.tum").is_file()
+    far = Trajectory(truth.timestamps + 1000.0, truth.poses)
+    write_trajectory(tmp_path / "far.tum", far, "tum")
+    code, _, stderr = run_cli(capsys, "run", own, "--out", tmp_path / "far", "--gt", tmp_path / "far.tum")
+    assert code == 2 and "does not overlap the images" in stderr
+
+
+def test_viser_listens_on_this_machine_only_unless_asked(dataset, tmp_path, scripted, capsys, monkeypatch):
+    import app.sinks.viser_view
+
+    hosts = []
+
+    class FakeView:
+        url = "http://fake"
+
+        def __init__(self, camera, player, ground_truth=None, host="?", port=0):
+            hosts.append(host)
+            player.stop()  # the page would be the way to quit
+
+        def on_frame(self, frame, result): ...
+        def on_event(self, event): ...
+        def on_map(self, snapshot): ...
+        def close(self): ...
+
+    monkeypatch.setattr(app.sinks.viser_view, "ViserView", FakeView)
+    for extra in ([], ["--host", "0.0.0.0"]):
+        code, _, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--quiet", "--viser", *extra)
+        assert code == 0
+    assert hosts == ["127.0.0.1", "0.0.0.0"]
 
 
 # ------------------------------------------------------------------------------------------ eval, info
@@ -340,3 +538,46 @@ def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
                                cwd=REPO, capture_output=True, text=True, timeout=60)
     assert completed.returncode == 2
     assert completed.stderr.strip().splitlines() == [f"fdmo: error: {tmp_path / 'nowhere'}: no such file or folder"]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_the_compiled_kernels_finishes_the_files_and_exits_130(tmp_path, signum):
+    """The real direct method on the bundled sequence, signalled once it tracks (most of its time is then spent in
+    numba kernels, where a KeyboardInterrupt used to surface as a SystemError and exit 1)."""
+    out = tmp_path / "results"
+    process = subprocess.Popen([sys.executable, "-m", "app", "run", "--out", str(out), "--no-rrd", "--quiet"],
+                               cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    poses = out / "trajectory.tum"
+    assert wait_until(lambda: poses.is_file() and len(poses.read_text().splitlines()) > 6, timeout_s=240)
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 130, stderr
+    assert stderr.strip().splitlines() == [f"fdmo: interrupted; results in {out}"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["processed_frames"] < 80
+    assert len((out / "frames.csv").read_text().splitlines()) == 1 + metrics["processed_frames"]
+    assert len(read_trajectory(poses)) == metrics["posed_frames"]
+
+
+def test_a_calibration_for_another_resolution_exits_2_naming_both_sizes(dataset, tmp_path):
+    (tmp_path / "folder").mkdir()
+    for image in sorted((dataset / "images").iterdir())[:4]:
+        (tmp_path / "folder" / image.name).write_bytes(image.read_bytes())
+    (tmp_path / "folder" / "camera.yaml").write_text(
+        "model: pinhole\nintrinsics: [500, 500, 319.5, 239.5]\nresolution: [640, 480]\n")
+    completed = subprocess.run([sys.executable, "-m", "app", "run", str(tmp_path / "folder"), "--out",
+                                str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert completed.returncode == 2
+    assert completed.stderr.strip().splitlines() == [
+        f"fdmo: error: {tmp_path / 'folder' / 'img_00000.png'}: the images are {WIDTH}x{HEIGHT}, "
+        "but the camera calibration is for 640x480"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_output_read_by_a_reader_that_goes_away_ends_quietly(dataset):
+    """``fdmo info X | head``: the pipe closes before fdmo writes."""
+    process = subprocess.Popen([sys.executable, "-m", "app", "info", str(dataset)], cwd=REPO,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the only reader: fdmo's first write meets a broken pipe
+    stderr = process.stderr.read().decode()
+    assert process.wait(timeout=60) == 141 and stderr == ""

@@ -304,6 +304,68 @@ def test_image_folder_times_file_must_match_the_images(tmp_path):
         open_sequence(tmp_path)
 
 
+def test_image_folder_with_images_in_an_images_subfolder_beside_camera_yaml(tmp_path):
+    write_images([tmp_path / "images" / f"{i:03d}.png" for i in range(3)], 32, 24)
+    (tmp_path / "camera.yaml").write_text(CAMERA_YAML)
+    (tmp_path / "vignette.png").write_bytes((tmp_path / "images" / "000.png").read_bytes())  # not a frame
+    sequence = open_sequence(tmp_path)
+    assert sequence.layout == "image_folder" and sequence.name == tmp_path.name
+    assert [Path(f.path).parent.name for f in sequence] == ["images"] * 3
+    np.testing.assert_allclose(sequence.timestamps, [0.0, 0.1, 0.2])  # 000.png: a frame number, not a time
+    (tmp_path / "times.txt").write_text("5.0\n5.5\n6.25\n")
+    np.testing.assert_allclose(open_sequence(tmp_path).timestamps, [5.0, 5.5, 6.25])
+
+
+def test_image_folder_timestamps_from_names_that_are_times(tmp_path):
+    seconds = tmp_path / "seconds"
+    # Natural order would put 1341841873.5 before 1341841873.25: names that are times are ordered by time.
+    write_images([seconds / f"{name}.png" for name in ("1341841873.5", "1341841873.25", "1341841874.0")], 32, 24)
+    (seconds / "camera.yaml").write_text(CAMERA_YAML)
+    sequence = open_sequence(seconds)
+    np.testing.assert_allclose(sequence.timestamps, [1341841873.25, 1341841873.5, 1341841874.0], rtol=0, atol=1e-6)
+    assert [Path(f.path).stem for f in sequence] == ["1341841873.25", "1341841873.5", "1341841874.0"]
+
+    nanoseconds = tmp_path / "nanoseconds"
+    stamps = [1403715273262142976, 1403715273312143104]
+    write_images([nanoseconds / f"{ns}.png" for ns in stamps], 32, 24)
+    (nanoseconds / "camera.yaml").write_text(CAMERA_YAML)
+    np.testing.assert_allclose(open_sequence(nanoseconds).timestamps - 1403715273,
+                               [0.262142976, 0.312143104], rtol=0, atol=1e-6)
+
+    mixed = tmp_path / "mixed"  # not all times: frame i at i x 0.1 s
+    write_images([mixed / f"{name}.png" for name in ("1341841873.5", "preview")], 32, 24)
+    (mixed / "camera.yaml").write_text(CAMERA_YAML)
+    np.testing.assert_allclose(open_sequence(mixed).timestamps, [0.0, 0.1])
+
+
+def test_image_folder_names_for_one_time_twice_are_refused(tmp_path):
+    write_images([tmp_path / f"{name}.png" for name in ("10.5", "10.50")], 32, 24)
+    (tmp_path / "camera.yaml").write_text(CAMERA_YAML)
+    with pytest.raises(InputError, match=r"timestamp 10\.5\d* at entry 1 is duplicated"):
+        open_sequence(tmp_path)
+
+
+def test_a_calibration_for_another_resolution_is_refused_naming_both_sizes(tmp_path):
+    write_images([tmp_path / f"{i}.png" for i in range(3)], 48, 36)
+    (tmp_path / "camera.yaml").write_text(CAMERA_YAML)
+    with pytest.raises(InputError, match=r"0\.png: the images are 48x36, but the camera calibration is for 32x24"):
+        open_sequence(tmp_path)
+
+
+def test_a_ground_truth_file_replaces_the_dataset_one(tmp_path):
+    write_images([tmp_path / "seq" / f"{i}.png" for i in range(3)], 32, 24)
+    (tmp_path / "seq" / "camera.yaml").write_text(CAMERA_YAML)
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = [0.0, 1.0, 2.0]
+    (tmp_path / "gt.txt").write_text("".join(" ".join(f"{v}" for v in T[:3].ravel()) + "\n" for T in poses))
+    ground_truth = open_sequence(tmp_path / "seq", ground_truth_file=tmp_path / "gt.txt").ground_truth
+    np.testing.assert_allclose(ground_truth.timestamps, [0.0, 0.1, 0.2])  # KITTI: the images' times
+    np.testing.assert_allclose(ground_truth.poses, poses)
+    (tmp_path / "gt.txt").write_text("".join(" ".join(f"{v}" for v in T[:3].ravel()) + "\n" for T in poses[:2]))
+    with pytest.raises(InputError, match=r"gt\.txt: 2 poses but 3 timestamps"):
+        open_sequence(tmp_path / "seq", ground_truth_file=tmp_path / "gt.txt")
+
+
 def test_camera_file_option_replaces_the_dataset_calibration(tmp_path):
     root = make_kitti(tmp_path / "seq")
     camera_file = tmp_path / "mine.yaml"

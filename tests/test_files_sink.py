@@ -6,12 +6,24 @@ import json
 
 import numpy as np
 import pytest
+from ply_reader import read_ply
 
-from app.sinks.files import CONFIG_FILE, EVENTS_FILE, KEYFRAMES_FILE, METRICS_FILE, TRAJECTORY_FILE, FilesSink
+from app.sinks.files import (
+    CONFIG_FILE,
+    DIRECT_MAP_FILE,
+    EVENTS_FILE,
+    FEATURE_MAP_FILE,
+    FRAMES_FILE,
+    GROUND_TRUTH_FILE,
+    KEYFRAMES_FILE,
+    METRICS_FILE,
+    TRAJECTORY_FILE,
+    FilesSink,
+)
 from vo_core.config import load_config
-from vo_core.events import Event, EventKind, FrameResult
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.lie import se3_exp
-from vo_core.trajectory import read_trajectory
+from vo_core.trajectory import Trajectory, read_trajectory
 
 
 def pose(i: int) -> np.ndarray:
@@ -84,3 +96,37 @@ def test_a_new_pass_starts_the_files_afresh(sink):
     sink.on_frame(None, result(3))
     assert len(read_trajectory(sink.out_dir / TRAJECTORY_FILE)) == 1
     assert (sink.out_dir / EVENTS_FILE).read_text() == ""
+
+
+def test_frames_csv_has_a_line_per_frame_with_the_tracking_residuals(sink):
+    sink.on_frame(None, FrameResult(0, 10.0, None, False))
+    sink.on_frame(None, FrameResult(1, 10.5, pose(1), True, True, rmse_before=12.5, rmse_after=7.25,
+                                    num_inliers=812))
+    table = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
+    assert table.dtype.names == ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after",
+                                 "num_inliers")
+    np.testing.assert_array_equal(table[1].tolist(), [1, 10.5, 1, 1, 12.5, 7.25, 812])
+    assert table[0].tolist()[:4] == (0, 10.0, 0, 0) and np.isnan(table[0].tolist()[4:]).all()  # empty: no value
+
+
+def test_maps_round_trip_through_ply_and_an_empty_map_leaves_no_file(sink):
+    rng = np.random.default_rng(0)
+    direct, features = rng.normal(size=(30, 3)) * 5, rng.normal(size=(12, 3))
+    features[3] = np.inf
+    sink.write_maps(MapSnapshot(direct, rng.uniform(0.1, 3.0, 30), features))
+    np.testing.assert_allclose(read_ply(sink.out_dir / DIRECT_MAP_FILE)[0], direct, rtol=1e-6)
+    points, colors = read_ply(sink.out_dir / FEATURE_MAP_FILE)
+    np.testing.assert_allclose(points, np.delete(features, 3, axis=0), rtol=1e-6)
+    assert len(np.unique(colors, axis=0)) == 1
+    sink.write_maps(MapSnapshot(direct_points_world=np.zeros((0, 3)), direct_inverse_depths=np.zeros(0)))
+    assert not (sink.out_dir / DIRECT_MAP_FILE).exists() and not (sink.out_dir / FEATURE_MAP_FILE).exists()
+
+
+def test_ground_truth_file_is_written_when_there_is_one(sink):
+    truth = Trajectory(1305031102.175304 + np.arange(5) / 30.0, [pose(i) for i in range(5)])
+    sink.write_ground_truth(truth)
+    written = read_trajectory(sink.out_dir / GROUND_TRUTH_FILE)
+    np.testing.assert_allclose(written.timestamps, truth.timestamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(written.poses, truth.poses, atol=1e-6)
+    sink.write_ground_truth(None)
+    assert not (sink.out_dir / GROUND_TRUTH_FILE).exists()

@@ -173,3 +173,34 @@ def test_wait_for_restart_wakes_on_a_request_from_another_thread():
 def test_invalid_scripted_drops_are_refused(drop):
     with pytest.raises(ValueError, match="drop"):
         Player(frames(5), drops=[drop])
+
+
+def test_interrupt_ends_the_pass_even_while_paused_and_says_so():
+    player = Player(frames(100))
+    player.pause()
+    consumer = Consumer(player)
+    player.step()
+    assert consumer.next() == 0
+    player.interrupt()
+    assert consumer.next() is None  # the wait polls: no notification needed
+    assert player.interrupted and player.stopped and not player.finished
+    assert player.wait_for_restart() is False
+
+
+def test_interrupt_takes_no_lock():
+    """A signal handler runs between two bytecodes of the main thread, maybe while it holds the player's lock."""
+    player = Player(frames(3))
+    holding, release = threading.Event(), threading.Event()
+
+    def hold_the_lock():
+        with player._condition:
+            holding.set()
+            release.wait(WAIT_S)
+
+    threading.Thread(target=hold_the_lock, daemon=True).start()
+    assert holding.wait(WAIT_S)
+    interrupting = threading.Thread(target=player.interrupt, daemon=True)
+    interrupting.start()
+    interrupting.join(timeout=1.0)
+    release.set()
+    assert not interrupting.is_alive() and player.interrupted

@@ -203,6 +203,27 @@ def test_page_is_served_over_http(fake_view):
     assert response.status == 200 and "<html" in page.lower()
 
 
+def accepts_connections(host: str, port: int) -> bool:
+    with socket.socket() as probe:
+        probe.settimeout(5.0)
+        return probe.connect_ex((host, port)) == 0
+
+
+def test_the_page_listens_on_the_loopback_address_only_unless_asked():
+    """Every 127.x.y.z reaches this machine: a server bound to 127.0.0.1 alone refuses 127.0.0.2."""
+    view = ViserView(CAMERA, FakePlayer(), port=free_port())
+    try:
+        assert view.url.startswith("http://127.0.0.1:")
+        assert accepts_connections("127.0.0.1", view.port) and not accepts_connections("127.0.0.2", view.port)
+    finally:
+        view.close()
+    elsewhere = ViserView(CAMERA, FakePlayer(), host="127.0.0.2", port=free_port())
+    try:
+        assert accepts_connections("127.0.0.2", elsewhere.port) and not accepts_connections("127.0.0.1", elsewhere.port)
+    finally:
+        elsewhere.close()
+
+
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
 def test_headless_chromium_renders_the_controls(fake_view):
     """The page's script runs, connects back over the websocket and builds the panel. The panel arrives over the

@@ -52,6 +52,10 @@ class Trajectory:
     def subset(self, indices: np.ndarray) -> "Trajectory":
         return Trajectory(self.timestamps[indices], self.poses[indices])
 
+    def within(self, first: float, last: float) -> "Trajectory":
+        """The poses timed ``first`` to ``last`` seconds, both included."""
+        return self.subset(np.flatnonzero((self.timestamps >= first) & (self.timestamps <= last)))
+
 
 FORMATS = ("tum", "kitti", "euroc")
 KITTI_FRAME_PERIOD_S = 0.1  # KITTI's cameras run at 10 Hz: the stand-in timestamps without a times.txt
@@ -64,7 +68,8 @@ ROTATION_TOLERANCE = 1e-2
 _FIELDS_PER_LINE = {"tum": 8, "kitti": 12, "euroc": 8}  # EuRoC: at least 8, more are ignored
 _SEPARATORS = re.compile(r"[,\s]+")
 _EUROC_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
-_EUROC_MIN_NS = 1e12  # a first column this large is nanoseconds (EuRoC), not seconds (TUM)
+# A time this large is nanoseconds (EuRoC, ROS), not seconds: 1e12 s after 1970 is the year 33658.
+MIN_NANOSECOND_TIMESTAMP = 1e12
 
 
 # ------------------------------------------------------------------------------------------------ reading
@@ -132,7 +137,7 @@ def _first_lines(path: Path) -> tuple[str, str]:
 
 def _looks_like_nanoseconds(field: str) -> bool:
     try:
-        return float(field) >= _EUROC_MIN_NS
+        return float(field) >= MIN_NANOSECOND_TIMESTAMP
     except ValueError:
         return False
 
@@ -188,7 +193,7 @@ def _numbers(rows: _Rows, path: Path, count: int, exact: bool, first_column_ns: 
         try:
             table[row] = [float(field) for field in fields[:count]]
             if first_column_ns:
-                table[row, 0] = _seconds_from_ns(fields[0])
+                table[row, 0] = seconds_from_nanoseconds(fields[0])
         except ValueError:
             raise InputError(f"{path}:{number}: not a number in '{' '.join(fields)}'") from None
     return table
@@ -200,11 +205,13 @@ def _check_finite(table: np.ndarray, rows: _Rows, path: Path) -> None:
         raise InputError(f"{path}:{rows.line_numbers[bad[0]]}: non-finite value in '{' '.join(rows.values[bad[0]])}'")
 
 
-def _seconds_from_ns(field: str) -> float:
+def seconds_from_nanoseconds(field: str) -> float:
+    """An integer count of nanoseconds, as written, in seconds: whole seconds and the rest apart, so that a
+    19-digit count does not pass through a double (which would round it to ~256 ns)."""
     try:
         whole_seconds, nanoseconds = divmod(int(field), NS_PER_S)
         return whole_seconds + nanoseconds / NS_PER_S
-    except ValueError:  # written as a float ("1.4e18"): its precision is already gone
+    except (ValueError, OverflowError):  # written as a float ("1.4e18"): its precision is already gone
         return float(field) / NS_PER_S
 
 
@@ -220,12 +227,13 @@ def _from_timestamped_quaternions(rows: _Rows, path: Path, format: str) -> Traje
     timestamps, positions = table[:, 0], table[:, 1:4]
     # TUM stores (qx, qy, qz, qw), EuRoC (qw, qx, qy, qz); scipy wants (x, y, z, w).
     quaternions_xyzw = table[:, [5, 6, 7, 4]] if euroc else table[:, 4:8]
-    norms = np.linalg.norm(quaternions_xyzw, axis=1)
-    if np.any(norms < 1e-9):  # cannot be normalized: no rotation at all
-        bad = int(np.argmax(norms < 1e-9))
+    largest = np.max(np.abs(quaternions_xyzw), axis=1)
+    if np.any(largest < 1e-9):  # cannot be normalized: no rotation at all
+        bad = int(np.argmax(largest < 1e-9))
         raise InputError(f"{path}:{rows.line_numbers[bad]}: zero quaternion")
+    scaled = quaternions_xyzw / largest[:, None]  # first: the norm of (1e160, 0, 0, 1) would overflow
     poses = np.tile(np.eye(4), (len(table), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(quaternions_xyzw / norms[:, None]).as_matrix()
+    poses[:, :3, :3] = Rotation.from_quat(scaled / np.linalg.norm(scaled, axis=1)[:, None]).as_matrix()
     poses[:, :3, 3] = positions
     return Trajectory(timestamps, poses)
 

@@ -1,8 +1,9 @@
 """The result files of a run (the CLI contract), written so that they are valid at every moment.
 
-trajectory.tum, keyframes.tum and events.jsonl grow a line per frame or event, flushed at once (line
+trajectory.tum, keyframes.tum, frames.csv and events.jsonl grow a line per frame or event, flushed at once (line
 buffering), so a run that fails or is interrupted still leaves complete files behind. config.yaml is written
-at the start; metrics.json and the final keyframes.tum replace the old file atomically (write, then rename).
+at the start. At the end, metrics.json, the final keyframes.tum, the ground truth of the run (groundtruth.tum) and
+the maps (map_direct.ply, map_features.ply) replace the old files atomically (write, then rename).
 """
 
 from __future__ import annotations
@@ -14,21 +15,31 @@ from typing import Any
 
 import numpy as np
 
+from app.sinks.scene import FEATURE_POINT_COLOR, inverse_depth_colors
 from vo_core.config import Config, dump_config
 from vo_core.events import Event, FrameResult, MapSnapshot
 from vo_core.trajectory import Trajectory, tum_line, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
+FRAMES_FILE = "frames.csv"
 EVENTS_FILE = "events.jsonl"
 METRICS_FILE = "metrics.json"
 CONFIG_FILE = "config.yaml"
-RESULT_FILES = (TRAJECTORY_FILE, KEYFRAMES_FILE, EVENTS_FILE, METRICS_FILE, CONFIG_FILE)
+RESULT_FILES = (TRAJECTORY_FILE, KEYFRAMES_FILE, FRAMES_FILE, EVENTS_FILE, METRICS_FILE, CONFIG_FILE)
+# Written when there is something to write: a ground truth, a non-empty map.
+GROUND_TRUTH_FILE = "groundtruth.tum"
+DIRECT_MAP_FILE = "map_direct.ply"
+FEATURE_MAP_FILE = "map_features.ply"
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"  # the header vo_core.trajectory.write_trajectory writes
+PLY_PROPERTIES = (("x", "<f4", "float"), ("y", "<f4", "float"), ("z", "<f4", "float"),
+                  ("red", "u1", "uchar"), ("green", "u1", "uchar"), ("blue", "u1", "uchar"))  # name, numpy, PLY
+FRAMES_COLUMNS = ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after", "num_inliers")
 
 
 class FilesSink:
-    """A Sink that writes trajectory.tum, keyframes.tum and events.jsonl into ``out_dir`` as the run goes."""
+    """A Sink that writes trajectory.tum, keyframes.tum, frames.csv and events.jsonl into ``out_dir`` as the run
+    goes, and the files of the end of a run when told to."""
 
     def __init__(self, out_dir: str | Path):
         self.out_dir = Path(out_dir)
@@ -42,15 +53,17 @@ class FilesSink:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
         self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in
-                       (TRAJECTORY_FILE, KEYFRAMES_FILE, EVENTS_FILE)}
+                       (TRAJECTORY_FILE, KEYFRAMES_FILE, FRAMES_FILE, EVENTS_FILE)}
         self._files[TRAJECTORY_FILE].write(TUM_HEADER)
         self._files[KEYFRAMES_FILE].write(TUM_HEADER)
+        self._files[FRAMES_FILE].write(",".join(FRAMES_COLUMNS) + "\n")
         dump_config(config, self.out_dir / CONFIG_FILE)
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self._timestamps[result.frame_index] = result.timestamp
+        self._files[FRAMES_FILE].write(frames_line(result) + "\n")
         if result.T_world_cam is None:
             return
         line = tum_line(result.timestamp, result.T_world_cam) + "\n"
@@ -76,11 +89,35 @@ class FilesSink:
             return
         self._files[KEYFRAMES_FILE].close()
         keyframes = Trajectory(np.array([t for t, _ in dated]), np.array([keyframe_poses[i] for _, i in dated]))
-        path = self.out_dir / KEYFRAMES_FILE
-        partial = path.with_name(path.name + ".partial")
-        write_trajectory(partial, keyframes, "tum")
-        os.replace(partial, path)  # readers never see a half-written file
-        self._files[KEYFRAMES_FILE] = open(path, "a", buffering=1)
+        write_trajectory_atomically(self.out_dir / KEYFRAMES_FILE, keyframes)
+        self._files[KEYFRAMES_FILE] = open(self.out_dir / KEYFRAMES_FILE, "a", buffering=1)
+
+    def write_ground_truth(self, ground_truth: Trajectory | None) -> None:
+        """groundtruth.tum: the poses the run is evaluated against (``fdmo plot`` and ``fdmo eval`` read it)."""
+        self._write_or_remove(GROUND_TRUTH_FILE, ground_truth is not None and len(ground_truth) > 0,
+                              lambda path: write_trajectory_atomically(path, ground_truth))
+
+    def write_maps(self, snapshot: MapSnapshot) -> None:
+        """The direct cloud (colored by inverse depth, as in the viewers) and the feature cloud as PLY files; an
+        empty cloud has no file."""
+        direct, features = snapshot.direct_points_world, snapshot.feature_points_world
+        direct_colors = None if direct is None else inverse_depth_colors(snapshot.direct_inverse_depths)
+        feature_colors = None if features is None else np.tile(np.uint8(FEATURE_POINT_COLOR), (len(features), 1))
+        self._write_cloud(DIRECT_MAP_FILE, direct, direct_colors)
+        self._write_cloud(FEATURE_MAP_FILE, features, feature_colors)
+
+    def _write_cloud(self, name: str, points: np.ndarray | None, colors: np.ndarray | None) -> None:
+        """Its finite points (no viewer draws NaN or infinity) as ``name``; no points, no file."""
+        finite = np.zeros(0, bool) if points is None else np.all(np.isfinite(points), axis=1)
+        self._write_or_remove(name, bool(finite.any()), lambda path: write_ply(path, points[finite], colors[finite]))
+
+    def _write_or_remove(self, name: str, present: bool, write) -> None:
+        """Write ``name`` with ``write(path)``, or remove the file a previous pass left if there is nothing now."""
+        path = self.out_dir / name
+        if present:
+            write(path)
+        else:
+            path.unlink(missing_ok=True)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
         write_text_atomically(self.out_dir / METRICS_FILE, to_json(metrics, indent=2) + "\n")
@@ -91,10 +128,39 @@ class FilesSink:
         self._files = {}
 
 
+def frames_line(result: FrameResult) -> str:
+    """The frames.csv line of a frame: flags as 1/0, and an empty field where a method has no value."""
+    values = (result.frame_index, f"{result.timestamp:.9f}", int(result.tracked), int(result.is_keyframe),
+              result.rmse_before, result.rmse_after, result.num_inliers)
+    return ",".join("" if value is None else f"{value:.9g}" if isinstance(value, float) else str(value)
+                    for value in values)
+
+
 def write_text_atomically(path: Path, text: str) -> None:
     """Readers never see a half-written file: write beside it, then rename over it."""
+    _write_atomically(path, lambda partial: partial.write_text(text))
+
+
+def write_trajectory_atomically(path: Path, trajectory: Trajectory) -> None:
+    _write_atomically(path, lambda partial: write_trajectory(partial, trajectory, "tum"))
+
+
+def write_ply(path: Path, points: np.ndarray, colors: np.ndarray) -> None:
+    """A colored point cloud as binary little-endian PLY: x y z as float32, red green blue as uint8."""
+    vertices = np.empty(len(points), dtype=[(name, dtype) for name, dtype, _ in PLY_PROPERTIES])
+    for column, axis in enumerate("xyz"):
+        vertices[axis] = points[:, column]
+    for column, channel in enumerate(("red", "green", "blue")):
+        vertices[channel] = colors[:, column]
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              + "".join(f"property {ply_type} {name}\n" for name, _, ply_type in PLY_PROPERTIES) + "end_header\n")
+    _write_atomically(path, lambda partial: partial.write_bytes(header.encode("ascii") + vertices.tobytes()))
+
+
+def _write_atomically(path: Path, write) -> None:
+    """Readers never see a half-written file: ``write`` a file beside ``path``, then rename it over ``path``."""
     partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
+    write(partial)
     os.replace(partial, path)
 
 

@@ -191,8 +191,10 @@ class Sequence:
         self._images = images
         self._timestamps = np.asarray(timestamps, dtype=float)
         self._exposures_ms = None if exposures_ms is None else np.asarray(exposures_ms, dtype=float)
-        self._undistorter = Undistorter(raw_camera, _undistorter_output(options.undistort_output, calibration_output))
+        self._undistorter = _undistorter(raw_camera, _undistorter_output(options.undistort_output, calibration_output),
+                                         root)
         self._selection = np.arange(len(images))
+        self._check_image_size()
 
     # ------------------------------------------------------------------------------------------- views
 
@@ -263,6 +265,21 @@ class Sequence:
             irradiance = self._undistorter.rectify(self.photometric.correct(raw))
         return Frame(index, timestamp, self._undistorter.rectify(raw), exposure, path, None, irradiance)
 
+    def _check_image_size(self) -> None:
+        """A calibration for another resolution would skip every frame: refuse it when the first image and the last
+        have another size (one odd image among right ones is only a bad frame, skipped with an event)."""
+        expected = (self.raw_camera.height, self.raw_camera.width)
+        first = self._images.read(0)
+        if first is None or first.shape == expected:
+            return
+        last = self._images.read(len(self._images) - 1)
+        if last is None or last.shape == expected:
+            return
+        raise InputError(
+            f"{self._images.name(0)}: the images are {first.shape[1]}x{first.shape[0]}, "
+            f"but the camera calibration is for {self.raw_camera.width}x{self.raw_camera.height}"
+        )
+
     def _problem_with(self, raw: np.ndarray | None, path: str) -> str | None:
         if raw is None:
             return f"{path}: unreadable or corrupt image"
@@ -301,6 +318,15 @@ class Sequence:
                 "time_span_s": [float(gt_times[0]), float(gt_times[-1])],
             }
         return description
+
+
+def _undistorter(raw_camera: CameraModel, output: OutputSpec, root: Path) -> Undistorter:
+    """The rectification of the calibration's camera. Numbers that parse but describe no camera (a distortion of
+    1e300, a focal length of 1e-300) fail in its arithmetic: that is bad input, said in one line."""
+    try:
+        return Undistorter(raw_camera, output)
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as error:
+        raise InputError(f"{root}: the camera calibration cannot be rectified ({error})") from None
 
 
 def _undistorter_output(requested: OutputSpec, calibration_output: OutputSpec | None) -> OutputSpec:

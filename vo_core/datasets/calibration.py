@@ -133,10 +133,9 @@ def _dso_camera(model: str, width: int, height: int, params) -> CameraModel:
 
 def _image_size(path: Path, line_number: int, line: str) -> tuple[int, int]:
     values = parse_numbers(path, line_number, split_fields(line), 2)
-    width, height = int(values[0]), int(values[1])
-    if width <= 0 or height <= 0 or width != values[0] or height != values[1]:
+    if not all(value > 0 and float(value).is_integer() for value in values):  # NaN and infinity are not
         raise InputError(f"{path}:{line_number}: image size must be two positive integers, got '{line}'")
-    return width, height
+    return int(values[0]), int(values[1])
 
 
 def _is_number(text: str) -> bool:

@@ -17,12 +17,11 @@ from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, read_yaml, split_fields, text_lines
 from vo_core.errors import InputError
 from vo_core.geometry.camera import camera_from_dict
-from vo_core.trajectory import Trajectory, read_trajectory
+from vo_core.trajectory import Trajectory, read_trajectory, seconds_from_nanoseconds
 
 NAME = "euroc"
 LOOKS_FOR = "mav0/cam0/data.csv (EuRoC/ASL)"
 CAMERA = "cam0"  # the left camera, as DSO and ORB-SLAM2 use for monocular EuRoC
-NANOSECONDS_PER_SECOND = 1_000_000_000
 _DISTORTION_MODELS = {"radial-tangential": "radtan", "radtan": "radtan", "equidistant": "equidistant"}
 
 
@@ -62,18 +61,16 @@ def load(path: Path, options: LoadOptions) -> Sequence:
 
 def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
     """data.csv: 'timestamp [ns],filename' per line; images in data/ beside it."""
-    timestamps_ns, paths = [], []
+    timestamps, paths = [], []
     for number, line in text_lines(list_file):
         fields = split_fields(line)
-        if len(fields) < 2 or not fields[0].isdigit():
+        if len(fields) < 2 or not fields[0].isdecimal():
             raise InputError(f"{list_file}:{number}: expected 'timestamp_ns,filename', found '{line}'")
-        timestamps_ns.append(int(fields[0]))
+        timestamps.append(seconds_from_nanoseconds(fields[0]))
         paths.append(list_file.parent / "data" / fields[1])
     if not paths:
         raise InputError(f"{list_file}: lists no images")
-    # whole seconds and the rest apart: a 19-digit nanosecond count as one double would lose ~256 ns
-    whole_seconds, nanoseconds = np.divmod(np.array(timestamps_ns, dtype=np.int64), NANOSECONDS_PER_SECOND)
-    timestamps = whole_seconds + nanoseconds / NANOSECONDS_PER_SECOND
+    timestamps = np.array(timestamps)
     check_increasing(timestamps, list_file)
     check_files_exist(paths, list_file)
     return timestamps, paths

@@ -1,13 +1,23 @@
 """A plain folder of images with a camera file: the layout for the user's own recordings.
 
-Images (png, jpg, bmp, pgm, tif) are taken in natural name order (img2 before img10). The camera is
-camera.yaml (or camera.yml, or DSO's camera.txt) beside them, or ``camera_file=``. Optional: times.txt with one
-timestamp in seconds per image (the first number of each line), otherwise frame i is at i x 0.1 s; and
-groundtruth.txt in TUM format (camera-to-world).
+The images (png, jpg, bmp, pgm, ppm, tif) are those of the folder's ``images/`` subfolder if it has any, else
+those of the folder itself. The camera is camera.yaml (or camera.yml, or DSO's camera.txt) in the folder or beside
+the images, or ``camera_file=``. Ground truth, optional: groundtruth.txt in TUM format (camera-to-world) in the
+folder.
+
+Timestamps, by the first rule that applies:
+
+1. ``times.txt`` in the folder or beside the images: the first number of each line, in seconds, a line per image;
+2. file names that are all times: a number of at least 1e12 is nanoseconds (EuRoC, ROS exports:
+   ``1403715274302142976.png``), a smaller one with a decimal point is seconds (TUM: ``1341841873.273798.png``);
+   the images are then taken in time order;
+3. otherwise frame i is at i x 0.1 s, the images in natural name order (img2 before img10). Smaller integers
+   (``000042.png``) are frame numbers, not times.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,15 +33,26 @@ from vo_core.datasets.base import (
 from vo_core.datasets.calibration import find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, read_table
 from vo_core.errors import InputError
-from vo_core.trajectory import read_trajectory
+from vo_core.trajectory import MIN_NANOSECOND_TIMESTAMP, read_trajectory, seconds_from_nanoseconds
 
 NAME = "image_folder"
-LOOKS_FOR = "image files with camera.yaml (image folder)"
+LOOKS_FOR = "image files, or images/, with camera.yaml (image folder)"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".tif", ".tiff")
+IMAGES_SUBFOLDER = "images"
+TIMES_FILE = "times.txt"
+_NUMBER = re.compile(r"\d{1,20}(\.\d+)?")  # nanoseconds since 1970 have 19 digits
 
 
 def detect(path: Path) -> bool:
-    return path.is_dir() and bool(image_files(path))
+    return path.is_dir() and _image_folder(path) is not None
+
+
+def _image_folder(path: Path) -> Path | None:
+    """Where the images are: images/ if it has any, else the folder itself if it has any."""
+    for folder in (path / IMAGES_SUBFOLDER, path):
+        if folder.is_dir() and image_files(folder):
+            return folder
+    return None
 
 
 def image_files(folder: Path) -> list[Path]:
@@ -41,13 +62,9 @@ def image_files(folder: Path) -> list[Path]:
 
 
 def load(path: Path, options: LoadOptions) -> Sequence:
-    image_paths = image_files(path)
-    calibration = load_camera_file(_camera_file(path, options))
-    timestamps = _timestamps(path / "times.txt", len(image_paths))
-    ground_truth = None
-    if (path / "groundtruth.txt").is_file():
-        ground_truth = read_trajectory(path / "groundtruth.txt", format="tum")
-        check_ground_truth_overlap(ground_truth, timestamps, path / "groundtruth.txt")
+    image_folder = _image_folder(path)
+    image_paths, timestamps = _images_and_timestamps(path, image_folder)
+    calibration = load_camera_file(_camera_file(path, image_folder, options))
     return Sequence(
         name=path.name,
         layout=NAME,
@@ -56,23 +73,57 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         images=ImageFiles(image_paths),
         timestamps=timestamps,
         options=options,
-        ground_truth=ground_truth,
+        ground_truth=_ground_truth(path / "groundtruth.txt", timestamps),
         calibration_output=calibration.output,
     )
 
 
-def _camera_file(folder: Path, options: LoadOptions) -> Path:
-    camera_file = options.camera_file or find_camera_file(folder)
+def _images_and_timestamps(folder: Path, image_folder: Path) -> tuple[list[Path], np.ndarray]:
+    """The images in order and their timestamps, by the rules of the module's docstring."""
+    image_paths = image_files(image_folder)
+    times_file = _times_file(folder, image_folder)
+    if times_file is not None:
+        return image_paths, _listed_timestamps(times_file, len(image_paths))
+    named = [_time_in_name(path.stem) for path in image_paths]
+    if None in named:
+        return image_paths, nominal_timestamps(len(image_paths))
+    order = np.argsort(named, kind="stable")
+    timestamps = np.array(named)[order]
+    check_increasing(timestamps, image_folder)  # two names for one time (1.5.png and 1.50.png)
+    return [image_paths[i] for i in order], timestamps
+
+
+def _camera_file(folder: Path, image_folder: Path, options: LoadOptions) -> Path:
+    camera_file = options.camera_file or find_camera_file(folder) or find_camera_file(image_folder)
     if camera_file is not None:
         return camera_file
     raise InputError(f"{folder}: a folder of images needs camera.yaml beside them (or pass a camera file)")
 
 
-def _timestamps(times_file: Path, count: int) -> np.ndarray:
-    if not times_file.is_file():
-        return nominal_timestamps(count)
+def _times_file(folder: Path, image_folder: Path) -> Path | None:
+    return next((f / TIMES_FILE for f in (folder, image_folder) if (f / TIMES_FILE).is_file()), None)
+
+
+def _listed_timestamps(times_file: Path, count: int) -> np.ndarray:
     timestamps = read_table(times_file, 1)[:, 0]
     if len(timestamps) != count:
         raise InputError(f"{times_file}: {len(timestamps)} timestamps for {count} images")
     check_increasing(timestamps, times_file)
     return timestamps
+
+
+def _time_in_name(stem: str) -> float | None:
+    """Seconds if the name is a time (rule 2 of the module's docstring), else None."""
+    if not _NUMBER.fullmatch(stem):
+        return None
+    if float(stem) >= MIN_NANOSECOND_TIMESTAMP:
+        return seconds_from_nanoseconds(stem)
+    return float(stem) if "." in stem else None
+
+
+def _ground_truth(path: Path, timestamps: np.ndarray):
+    if not path.is_file():
+        return None
+    ground_truth = read_trajectory(path, format="tum")
+    check_ground_truth_overlap(ground_truth, timestamps, path)
+    return ground_truth

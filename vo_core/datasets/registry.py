@@ -8,8 +8,9 @@ from types import ModuleType
 from typing import Callable
 
 from vo_core.datasets import euroc, image_folder, kitti, tum_mono, tum_rgbd, vamr, video
-from vo_core.datasets.base import LoadOptions, Sequence
+from vo_core.datasets.base import LoadOptions, Sequence, check_ground_truth_overlap
 from vo_core.errors import InputError
+from vo_core.trajectory import Trajectory, read_trajectory
 
 
 @dataclass(frozen=True)
@@ -46,13 +47,16 @@ def open_sequence(
     undistort_output="crop",
     on_bad_image: str = "skip",
     read_ahead: int = 8,
+    ground_truth_file: str | Path | None = None,
 ) -> Sequence:
     """Open the dataset at ``path`` (a folder, or a video file).
 
     ``layout`` forces one of ``LAYOUTS`` instead of detecting it; ``camera_file`` (camera YAML or DSO camera.txt)
     replaces the dataset's own calibration; ``undistort_output`` is DSO's rectification choice ("crop", "full",
     "none" or (width, height)); ``on_bad_image`` is "skip" (the frame comes with image None and an error) or
-    "abort" (InputError); ``read_ahead`` frames are read on a background thread while iterating (0: none).
+    "abort" (InputError); ``read_ahead`` frames are read on a background thread while iterating (0: none);
+    ``ground_truth_file`` (camera-to-world poses: TUM, KITTI with a line per image, or EuRoC CSV) replaces the
+    dataset's own ground truth.
     """
     path = Path(path).expanduser()
     if not path.exists():
@@ -67,7 +71,17 @@ def open_sequence(
         on_bad_image=on_bad_image,
         read_ahead=read_ahead,
     )
-    return _chosen_layout(path, layout).load(path, options)
+    sequence = _chosen_layout(path, layout).load(path, options)
+    if ground_truth_file is not None:
+        sequence.ground_truth = _ground_truth(Path(ground_truth_file), sequence.timestamps)
+    return sequence
+
+
+def _ground_truth(path: Path, timestamps) -> Trajectory:
+    """A trajectory file for the sequence; a KITTI file has no timestamps: its lines are the images'."""
+    ground_truth = read_trajectory(path, timestamps=timestamps)
+    check_ground_truth_overlap(ground_truth, timestamps, path)
+    return ground_truth
 
 
 def _chosen_layout(path: Path, name: str | None) -> Layout:

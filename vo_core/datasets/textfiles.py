@@ -26,13 +26,17 @@ def require_file(path: Path, what: str) -> Path:
     return path
 
 
-def text_lines(path: Path) -> list[tuple[int, str]]:
-    """(1-based line number, stripped text) of the non-empty, non-comment lines of a text file."""
+def read_text(path: Path) -> str:
+    """The text of a file; InputError when it cannot be read or is not UTF-8 text."""
     try:
-        text = path.read_text()
+        return path.read_text()
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"{path}: cannot read ({error.__class__.__name__})") from None
-    numbered = ((number, line.strip()) for number, line in enumerate(text.splitlines(), start=1))
+
+
+def text_lines(path: Path) -> list[tuple[int, str]]:
+    """(1-based line number, stripped text) of the non-empty, non-comment lines of a text file."""
+    numbered = ((number, line.strip()) for number, line in enumerate(read_text(path).splitlines(), start=1))
     return [(number, line) for number, line in numbered if line and not line.startswith("#")]
 
 
@@ -78,7 +82,7 @@ def read_matrix(path: Path, rows: int, cols: int) -> np.ndarray:
 
 def read_yaml(path: Path) -> dict[str, Any]:
     """A YAML mapping. OpenCV's ``%YAML:1.0`` directive (EuRoC's sensor.yaml) is not YAML 1.1: it is skipped."""
-    text = require_file(path, "YAML file").read_text()
+    text = read_text(require_file(path, "YAML file"))
     text = re.sub(r"^%YAML:1\.0\s*\n", "", text)
     try:
         content = yaml.safe_load(text)
