@@ -16,7 +16,9 @@ from typing import Any
 import yaml
 
 from vo_core.direct.config import DirectConfig
+from vo_core.direct.divergence import DivergenceConfig
 from vo_core.errors import InputError
+from vo_core.features.config import FeatureConfig
 from vo_core.init.config import InitConfig
 from vo_core.klt.config import KltConfig
 
@@ -31,6 +33,23 @@ class DatasetConfig:
 
 
 @dataclass
+class HybridConfig:
+    """How the system lets the two halves work together (FDMO sections 4.2.1-4.2.2, Figs. 2 and 3)."""
+
+    divergence: DivergenceConfig = field(default_factory=DivergenceConfig)
+    # A direct pose agrees with the feature map's when it explains this share of the feature pose's inlier matches
+    # by the same chi-square test (ours: on teddy, direct poses the feature map confirmed explained 97-99.5 % of its
+    # matches, the pose diverged after a 20-frame drop 41 %).
+    agreement: float = 0.8
+    # Frames in a row without a pose (no direct tracking, no recovery) before the direct map initializes again
+    # from scratch, at a new scale (ours; recovery keeps being tried meanwhile, and after).
+    lost_frames_before_reinitialization: int = 10
+    # A direct map restarted at a recovered pose needs this many feature points in view for its depths (ours;
+    # DSO's tracker needs 20 points, setting_minPointsInView).
+    min_restart_points: int = 50
+
+
+@dataclass
 class Config:
     method: str = "direct"  # the main job until fdmo lands: DSO-style direct odometry with its window optimization
     seed: int = 0  # every random choice (RANSAC, sampling) draws from generators seeded with this
@@ -38,6 +57,8 @@ class Config:
     klt: KltConfig = field(default_factory=KltConfig)
     direct: DirectConfig = field(default_factory=DirectConfig)
     init: InitConfig = field(default_factory=InitConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    fdmo: HybridConfig = field(default_factory=HybridConfig)
 
 
 def _field_types(cls: type) -> dict[str, Any]:
@@ -45,34 +66,76 @@ def _field_types(cls: type) -> dict[str, Any]:
 
 
 def _coerce(value: Any, annotation: Any, key: str) -> Any:
-    """Convert a YAML or command-line value to the annotated type, or say which key is wrong."""
+    """Convert a YAML or command-line value to the annotated type, or say which key is wrong and what it takes."""
     origin = typing.get_origin(annotation)
     if origin in (typing.Union, types.UnionType):
-        options = [a for a in typing.get_args(annotation) if a is not type(None)]
         if value is None:
             return None
-        annotation = options[0]
+        annotation = next(a for a in typing.get_args(annotation) if a is not type(None))
         origin = typing.get_origin(annotation)
+    if origin in (list, tuple):
+        return _coerce_items(value, annotation, key)
+    if annotation not in _SCALARS:
+        return value
+    convert, expected = _SCALARS[annotation]
     try:
-        if annotation is bool:
-            if isinstance(value, str):
-                if value.lower() in ("true", "1", "yes", "on"):
-                    return True
-                if value.lower() in ("false", "0", "no", "off"):
-                    return False
-                raise ValueError(value)
-            return bool(value)
-        if annotation in (int, float, str):
-            return annotation(value)
-        if origin in (list, tuple):
-            if isinstance(value, str):
-                value = yaml.safe_load(value)
-            (item_type, *_) = typing.get_args(annotation) or (Any,)
-            items = [v if item_type is Any else _coerce(v, item_type, key) for v in value]
-            return tuple(items) if origin is tuple else items
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"config key '{key}': cannot read {value!r} as {annotation}") from exc
-    return value
+        return convert(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"config key '{key}': cannot read {value!r} as {expected}") from None
+
+
+def _coerce_items(value: Any, annotation: Any, key: str) -> list | tuple:
+    """A list from YAML (``[1, 2]``, also as the text of --set); ``tuple[float, float]`` fixes its length."""
+    if isinstance(value, str):
+        value = _yaml_value(value, f"config key '{key}'")
+    item_types = typing.get_args(annotation)
+    fixed_length = len(item_types) if item_types and Ellipsis not in item_types else None
+    if not isinstance(value, (list, tuple)) or fixed_length not in (None, len(value)):
+        expected = f"a list of {fixed_length}" if fixed_length else "a list"
+        raise InputError(f"config key '{key}': cannot read {value!r} as {expected}")
+    items = [item if not item_types else _coerce(item, item_types[0], key) for item in value]
+    return tuple(items) if typing.get_origin(annotation) is tuple else items
+
+
+def _boolean(value: Any) -> bool:
+    if isinstance(value, bool):
+        return value
+    text = str(value).lower() if isinstance(value, (str, int)) else None
+    if text in ("true", "1", "yes", "on"):
+        return True
+    if text in ("false", "0", "no", "off"):
+        return False
+    raise ValueError(value)
+
+
+def _integer(value: Any) -> int:
+    if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
+        raise ValueError(value)  # 2.5 is no count, and true no number
+    return int(value)
+
+
+def _number(value: Any) -> float:
+    if isinstance(value, bool):
+        raise ValueError(value)
+    return float(value)
+
+
+def _text(value: Any) -> str:
+    if value is None or isinstance(value, (dict, list)):
+        raise ValueError(value)
+    return str(value)
+
+
+# annotation -> (conversion, what the error message says it takes)
+_SCALARS = {bool: (_boolean, "true or false"), int: (_integer, "an integer"), float: (_number, "a number"),
+            str: (_text, "text")}
+
+
+def _yaml_value(text: str, source: str) -> Any:
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise InputError(f"{source}: malformed YAML ({str(error).splitlines()[0]})") from None
 
 
 def _apply(obj: Any, values: dict[str, Any], prefix: str, source: str) -> None:
@@ -83,6 +146,8 @@ def _apply(obj: Any, values: dict[str, Any], prefix: str, source: str) -> None:
             raise InputError(f"{source}: unknown config key '{key}'")
         current = getattr(obj, name)
         if dataclasses.is_dataclass(current):
+            if value is None:  # a section left empty (all of its keys commented out)
+                continue
             if not isinstance(value, dict):
                 raise InputError(f"{source}: config key '{key}' is a section, got {value!r}")
             _apply(current, value, key + ".", source)
@@ -103,9 +168,10 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         if not path.is_file():
             raise InputError(f"{path}: config file not found")
         try:
-            values = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise InputError(f"{path}: malformed YAML ({str(exc).splitlines()[0]})") from exc
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as error:
+            raise InputError(f"{path}: cannot read ({error.__class__.__name__})") from None
+        values = _yaml_value(text, str(path)) or {}
         if not isinstance(values, dict):
             raise InputError(f"{path}: the config must be a mapping of keys to values")
         _apply(config, values, "", str(path))
@@ -118,7 +184,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         parts = key.strip().split(".")
         for part in parts[:-1]:
             cursor = cursor.setdefault(part, {})
-        cursor[parts[-1]] = yaml.safe_load(raw) if raw.strip() else raw
+        cursor[parts[-1]] = _yaml_value(raw, f"--set {item}") if raw.strip() else raw
         _apply(config, nested, "", f"--set {item}")
     _validate(config)
     return config

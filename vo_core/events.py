@@ -23,16 +23,22 @@ class EventKind(str, Enum):
     INITIALIZER_MODEL = "initializer_model"  # H or F chosen, with scores
     TRACKING_OK = "tracking_ok"
     TRACKING_FAILED = "tracking_failed"
-    DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps
-    RECOVERY_TRIED = "recovery_tried"
+    DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps, or confirmed
+    TRACKING_CHECKED = "tracking_checked"  # a suspect direct pose that the feature map confirmed
+    RECOVERY_TRIED = "recovery_tried"  # FDMO 4.2.2 started: the candidates it will try
     RECOVERY_SUCCEEDED = "recovery_succeeded"
     RECOVERY_FAILED = "recovery_failed"
-    REINITIALIZATION = "reinitialization"
+    DIRECT_RESTARTED = "direct_restarted"  # the direct map starts over at a recovered pose, same scale
+    FEATURE_TRACKING = "feature_tracking"  # a frame posed by the feature map while direct tracking is not back
+    REINITIALIZATION = "reinitialization"  # the last resort: a new map at a new scale
     KEYFRAME_ADDED = "keyframe_added"
+    FEATURE_KEYFRAME_ADDED = "feature_keyframe_added"  # FDMO 4.3: the feature map grew at a direct keyframe
+    FEATURE_KEYFRAME_CULLED = "feature_keyframe_culled"  # FDMO 4.4: redundant, its direct twin marginalized
     KEYFRAME_MARGINALIZED = "keyframe_marginalized"
     MAP_POINTS_CULLED = "map_points_culled"
     WINDOW_OPTIMIZED = "window_optimized"
     FRAME_SKIPPED = "frame_skipped"  # unreadable image skipped by the loader
+    FRAME_REPEATED = "frame_repeated"  # the same image as the frame before (a stalled camera): no pose
     FRAMES_DROPPED = "frames_dropped"  # dropped on purpose by the player (scripted or live)
 
 
@@ -64,7 +70,10 @@ class FrameResult:
     ``timings_ms`` maps a stage name to milliseconds spent on it for this frame.
     ``points_2d`` are the pixels the method tracked in this frame (selected direct points or features).
     ``matches_2d`` are feature matches drawn as lines: rows (u_from, v_from, u_to, v_to), from the pixel in the
-    image they were matched to (a keyframe, the previous frame) to the pixel in this frame.
+    image they were matched to (a keyframe, the previous frame) to the pixel in this frame; ``matches_inlier``
+    says which of them the pose accepted (None: all of them).
+    ``divergence_ratio`` is RMSE_after / RMSE_before of the direct alignment the system judged (FDMO 4.2.1),
+    with ``divergence_threshold`` 1 + epsilon.
     """
 
     frame_index: int
@@ -77,6 +86,9 @@ class FrameResult:
     num_inliers: int | None = None
     points_2d: np.ndarray | None = None
     matches_2d: np.ndarray | None = None  # (K, 4)
+    matches_inlier: np.ndarray | None = None  # (K,) bool
+    divergence_ratio: float | None = None
+    divergence_threshold: float | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
 
@@ -89,6 +101,7 @@ class MapSnapshot:
     direct_inverse_depths: np.ndarray | None = None  # (N,)
     feature_points_world: np.ndarray | None = None  # (M, 3)
     keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)  # frame index -> T_world_cam
+    feature_keyframe_poses: dict[int, np.ndarray] = field(default_factory=dict)  # the feature map's keyframes
 
 
 @runtime_checkable

@@ -1,27 +1,42 @@
 """The odometry: one object that takes frames in order and emits results and events to its sinks.
 
-``Odometry.track`` is FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves and decides:
-the direct half tracks the frame against its newest keyframe (a step that changes nothing), the system
-tests the outcome, the direct half accepts the frame (immature points, keyframe, window optimization), and a
-new direct keyframe grows the feature map. The KLT baseline is a pipeline of its own and only passes through.
+``Odometry.track`` runs FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves and decides;
+each half offers steps and decides nothing:
+
+    direct tracking from the motion model                  DirectOdometry.track (changes nothing)
+    divergence test                                        direct/divergence.py: trusted, suspect, diverged, lost
+    if not trusted: feature-based recovery (Fig. 3)        FeatureOdometry.recover: a pose from the feature map
+        a suspect pose the feature map agrees with is kept
+        else direct alignment from the recovered pose, kept if it converges and agrees with the feature map
+        else the direct map restarts at the recovered pose with the feature points' depths (same scale)
+        else the frame gets the feature pose and feature tracking takes the next frames
+        no pose at all: the frame is lost; after a while the direct map initializes anew (a new scale)
+    accept: immature points, keyframe decision, window      DirectOdometry.accept
+    at a new direct keyframe: the feature map grows (Fig. 4)  FeatureOdometry.add_keyframe
+
+``--method direct`` runs the same flow without the feature half: a lost frame reinitializes at once (DSO)
+and a diverged one is reported and kept. The KLT baseline is a pipeline of its own and only passes through.
 """
 
 from __future__ import annotations
 
 import time
+from enum import Enum
 from typing import Protocol
 
 import numpy as np
 
 from vo_core.config import Config
-from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking
+from vo_core.direct.divergence import Judgement, Verdict, judge
+from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.errors import InputError
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log, transform_points
 from vo_core.init.registry import initializer_factory
 
-IMPLEMENTED_METHODS = ("klt", "direct")
-DIRECT_METHODS = ("direct",)
+IMPLEMENTED_METHODS = ("fdmo", "klt", "direct")
+DIRECT_METHODS = ("fdmo", "direct")
 
 
 class FrontEnd(Protocol):
@@ -47,19 +62,34 @@ def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
     )
 
 
+class _Mode(Enum):
+    DIRECT = "direct"  # the direct half tracks (or initializes)
+    FEATURES = "features"  # feature-based tracking until the direct map can restart
+
+
 class Odometry:
     def __init__(self, config: Config, camera: PinholeCamera, sinks: list[Sink] | None = None):
         self.config = config
         self.camera = camera
         self.bus = EventBus(sinks)
         self.front_end = make_front_end(config, camera)
+        self.features = None
         if self.front_end is None:
             make_initializer = initializer_factory(config.direct, config.init, camera, config.seed)
             self.direct = DirectOdometry(config.direct, camera, make_initializer, config.seed)
+            if config.method == "fdmo":
+                from vo_core.features.feature_odometry import FeatureOdometry
+
+                self.features = FeatureOdometry(config.features, camera)
+        self.mode = _Mode.DIRECT
+        self.lost_frames = 0  # frames in a row without a pose
+        self.feature_poses: list[np.ndarray] = []  # the last poses of feature-based tracking (motion model)
+        self.previous_image: np.ndarray | None = None
+        self.repeated_since = -1  # the frame whose image the following ones repeat
 
     def track(self, frame) -> FrameResult:
         """Process the next frame, then tell the sinks what happened."""
-        result = self.front_end.process(frame) if self.front_end is not None else self._track_direct(frame)
+        result = self.front_end.process(frame) if self.front_end is not None else self._track_hybrid(frame)
         for event in result.events:
             self.bus.event(event)
         self.bus.frame(frame, result)
@@ -75,49 +105,241 @@ class Odometry:
     def map_snapshot(self) -> MapSnapshot:
         if self.front_end is not None:
             return self.front_end.map_snapshot()
-        return self.direct.map_snapshot()
+        snapshot = self.direct.map_snapshot()
+        if self.features is not None:
+            snapshot.feature_points_world = self.features.points_world()
+            snapshot.feature_keyframe_poses = self.features.keyframe_poses()
+        return snapshot
 
     def close(self) -> None:
         self.bus.close()
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 2
 
-    def _track_direct(self, raw_frame) -> FrameResult:
+    def _track_hybrid(self, raw_frame) -> FrameResult:
         start = time.perf_counter()
         result = FrameResult(raw_frame.index, raw_frame.timestamp, None, tracked=False)
+        if self._repeats_previous(raw_frame, result):
+            return result
         frame = self.direct.prepare(raw_frame)
         result.timings_ms["pyramid"] = _ms_since(start)
-        if not self.direct.initialized:
-            self.direct.initialize(frame, result)
+        if self.mode is _Mode.FEATURES:
+            keyframe = self._track_features(frame, result)
+        elif self.direct.initialized:
+            keyframe = self._track_direct(frame, result)
         else:
-            tracking = self.direct.track(frame)
-            result.timings_ms["track"] = tracking.ms
-            if tracking.converged:
-                self.direct.accept(frame, tracking, result)
-            else:
-                self._lost(frame, tracking, result)
+            keyframe = self._initialize(frame, result)
+        if self.features is not None and (keyframe is not None or result.is_keyframe):
+            self._map_features(result)
+        self._count_lost(frame, result)
         result.timings_ms["total"] = _ms_since(start)
         return result
 
-    def _lost(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> None:
-        """No motion hypothesis converged (DSO's lost): report it and initialize again from this frame, the new
-        map starting at the last good pose."""
-        result.rmse_before = tracking.rmse_before
-        details = {
-            "reason": "no motion hypothesis converged",
-            "reference_keyframe": tracking.reference.frame_index,
-            "rmse_before": tracking.rmse_before if np.isfinite(tracking.rmse_before) else None,
-        }
-        result.events.append(_event(EventKind.TRACKING_FAILED, frame, details))
-        origin = self.direct.last_pose.copy()
-        result.events.append(_event(EventKind.REINITIALIZATION, frame, {"origin_from_frame_pose": origin.tolist()}))
-        self.direct.reinitialize(origin)
+    def _repeats_previous(self, raw_frame, result: FrameResult) -> bool:
+        """A frame whose image is the previous frame's, bit for bit, is a camera or driver that stalled: it says
+        nothing new about the motion, and a pose for it (the previous one) would be wrong by however far the
+        camera went meanwhile. It gets no pose, with the reason; the frames after it are a jump."""
+        previous, self.previous_image = self.previous_image, raw_frame.image
+        if previous is None or previous.shape != raw_frame.image.shape or not np.array_equal(previous, raw_frame.image):
+            self.repeated_since = raw_frame.index
+            return False
+        _emit(result, EventKind.FRAME_REPEATED, {"same_as_frame": self.repeated_since})
+        return True
+
+    def _track_direct(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+        tracking = self.direct.track(frame)
+        result.timings_ms["track"] = tracking.ms
+        judgement = judge(tracking, self.config.fdmo.divergence)
+        result.divergence_ratio = judgement.ratio if np.isfinite(judgement.ratio) else None
+        result.divergence_threshold = judgement.threshold
+        if judgement.verdict is Verdict.TRUSTED:
+            return self.direct.accept(frame, tracking, result)
+        if self.features is None:
+            return self._without_recovery(frame, tracking, judgement, result)
+        return self._recover(frame, tracking, judgement, result)
+
+    def _initialize(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+        """Feed the direct initializer; with a feature map from before, first try to find the frame in it, so
+        that the map goes on at its scale instead of a new one."""
+        if self.features is not None and not self.features.empty:
+            outcome = self.features.recover(frame.frame.image, None)
+            result.timings_ms["recovery"] = outcome.ms
+            if outcome.succeeded:
+                _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
+                return self._continue_from(frame, outcome, None, result)
         self.direct.initialize(frame, result)
+        if result.tracked and self.features is not None and not self.features.empty:
+            self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
+        return None
+
+    # ------------------------------------------------------------------------------------ FDMO Fig. 3
+
+    def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                 result: FrameResult) -> Keyframe | None:
+        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index)
+        result.timings_ms["recovery"] = outcome.ms
+        if judgement.verdict is Verdict.SUSPECT:
+            check = {**judgement.details(tracking), **outcome.details()}
+            if not outcome.succeeded:  # nothing to check against: DSO would keep it, so do we (and say so)
+                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
+                return self.direct.accept(frame, tracking, result)
+            explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
+            if explained >= self.config.fdmo.agreement:
+                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True, "explained": round(explained, 3)})
+                return self.direct.accept(frame, tracking, result)
+            judgement.reason += f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
+        self._report_failure(frame, tracking, judgement, result)
+        _emit(result, EventKind.RECOVERY_TRIED,
+              {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
+        if not outcome.succeeded:
+            _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
+            self._set_matches(result, outcome, tracking.reference)
+            return None
+        _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
+        self._set_matches(result, outcome, tracking.reference)
+        return self._continue_from(frame, outcome, tracking.reference, result)
+
+    def _continue_from(self, frame: DirectFrame, outcome, reference: Keyframe | None,
+                       result: FrameResult) -> Keyframe | None:
+        """Back to direct from a recovered pose (FDMO 4.2.2): direct alignment from it when the window is still
+        there, else a direct map restarted at it, else feature tracking."""
+        if reference is not None:
+            tracking = self.direct.track(frame, outcome.T_world_cam)
+            result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
+            retrack = judge(tracking, self.config.fdmo.divergence)
+            if retrack.verdict in (Verdict.TRUSTED, Verdict.SUSPECT) and self._agrees(outcome, tracking):
+                result.divergence_ratio = retrack.ratio
+                return self.direct.accept(frame, tracking, result)
+        uv, inverse_depths = self.features.depths_in_view(outcome.pose, outcome.features)
+        if len(uv) >= self.config.fdmo.min_restart_points:
+            _emit(result, EventKind.DIRECT_RESTARTED,
+                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage})
+            self.mode = _Mode.DIRECT
+            return self.direct.restart_at(frame, outcome.T_world_cam, uv, inverse_depths, result)
+        self._pose_from_features(outcome.T_world_cam, outcome.pose.num_inliers, result)
+        return None
+
+    def _agrees(self, outcome, tracking: DirectTracking) -> bool:
+        explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
+        return tracking.converged and explained >= self.config.fdmo.agreement
+
+    def _track_features(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+        """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the
+        direct map restarts as soon as enough feature depths are in view."""
+        anchor = self.features.map.newest().frame_index
+        outcome = self.features.track(frame.frame.image, _constant_velocity(self.feature_poses), anchor)
+        if not outcome.succeeded:
+            self.feature_poses = []
+            outcome = self.features.recover(frame.frame.image, anchor)
+            result.timings_ms["recovery"] = outcome.ms
+            if not outcome.succeeded:
+                self.mode = _Mode.DIRECT  # lost: the next frames go through the recovery
+                _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
+                return None
+            _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
+        return self._continue_from(frame, outcome, None, result)
+
+    def _pose_from_features(self, T_world_cam: np.ndarray, inliers: int, result: FrameResult) -> None:
+        self.mode = _Mode.FEATURES
+        self.feature_poses = (self.feature_poses + [T_world_cam])[-2:]
+        result.T_world_cam = T_world_cam
+        result.tracked = True
+        result.num_inliers = inliers
+        _emit(result, EventKind.FEATURE_TRACKING, {"inliers": inliers})
+
+    # ------------------------------------------------------------------------------------ without recovery
+
+    def _without_recovery(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                          result: FrameResult) -> Keyframe | None:
+        """--method direct: DSO's behaviour, reported. A lost frame reinitializes at once; a diverged one is
+        reported and kept (there is nothing to recover from); a suspect one is kept."""
+        if judgement.verdict is Verdict.LOST:
+            self._report_failure(frame, tracking, judgement, result)
+            origin = self.direct.last_pose.copy()
+            _emit(result, EventKind.REINITIALIZATION, {"origin_from_frame_pose": origin.tolist()})
+            self.direct.reinitialize(origin)
+            self.direct.initialize(frame, result)
+            return None
+        if judgement.verdict is Verdict.DIVERGED:
+            _emit(result, EventKind.DIVERGENCE_DETECTED,
+                  {**judgement.details(tracking), "recovery": "none (--method direct keeps the pose)"})
+        return self.direct.accept(frame, tracking, result)
+
+    def _report_failure(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                        result: FrameResult) -> None:
+        result.rmse_before = tracking.rmse_before
+        if judgement.verdict is Verdict.LOST:
+            details = {
+                "reason": judgement.reason,
+                "reference_keyframe": tracking.reference.frame_index,
+                "rmse_before": tracking.rmse_before if np.isfinite(tracking.rmse_before) else None,
+            }
+            _emit(result, EventKind.TRACKING_FAILED, details)
+        else:
+            result.rmse_after = tracking.rmse_after
+            _emit(result, EventKind.DIVERGENCE_DETECTED, judgement.details(tracking))
+
+    def _count_lost(self, frame: DirectFrame, result: FrameResult) -> None:
+        """After ``lost_frames_before_reinitialization`` frames without a pose, the direct map starts over from
+        scratch (the last resort: a new scale); the recovery keeps being tried while it initializes."""
+        if result.T_world_cam is not None or not self.direct.initialized:
+            self.lost_frames = 0 if result.T_world_cam is not None else self.lost_frames
+            return
+        self.lost_frames += 1
+        if self.features is None or self.lost_frames < self.config.fdmo.lost_frames_before_reinitialization:
+            return
+        origin = self.direct.last_pose.copy()
+        _emit(result, EventKind.REINITIALIZATION,
+              {"origin_from_frame_pose": origin.tolist(), "from_scratch": True, "lost_frames": self.lost_frames})
+        self.direct.reinitialize(origin)
+        self.lost_frames = 0
+
+    # ------------------------------------------------------------------------------------ FDMO Fig. 4
+
+    def _map_features(self, result: FrameResult) -> None:
+        """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization
+        both of the initializer's keyframes), at its direct pose."""
+        window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
+        for keyframe in self.direct.keyframes:
+            if keyframe.frame_index in self.features.map.keyframes:
+                continue
+            report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
+                                                keyframe.T_world_cam, keyframe.median_depth, window_poses)
+            result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
+            _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, report.as_details())
+            for culled in report.culled_keyframes:
+                _emit(result, EventKind.FEATURE_KEYFRAME_CULLED, {"keyframe": culled})
+            if keyframe.frame_index == result.frame_index and len(report.new_matches):
+                result.matches_2d = report.new_matches
+                result.matches_inlier = None
+
+    def _set_matches(self, result: FrameResult, outcome, reference: Keyframe) -> None:
+        """A recovery's matches for the viewers: from where each matched map point was in the last direct
+        keyframe (the image before the jump) to the feature it matched in this frame; outliers flagged."""
+        pose = outcome.pose
+        if pose is None or outcome.features is None or len(pose.point_ids) == 0:
+            return
+        points = self.features.map.points.position[pose.point_ids]
+        points_ref = transform_points(se3_inverse(reference.T_world_cam), points)
+        front = points_ref[:, 2] > 0
+        uv_from = self.camera.project(points_ref[front])
+        uv_to = outcome.features.features.uv[pose.feature_ids[front]]
+        result.matches_2d = np.hstack([uv_from, uv_to])
+        result.matches_inlier = pose.inlier[front]
+
+
+def _constant_velocity(poses: list[np.ndarray]) -> np.ndarray:
+    """The next pose if the last motion repeats (the motion model of feature-based tracking)."""
+    if len(poses) < 2:
+        return poses[-1]
+    step = se3_log(se3_inverse(poses[-2]) @ poses[-1])
+    return poses[-1] @ se3_exp(step)
 
 
 def _ms_since(start: float) -> float:
     return (time.perf_counter() - start) * 1000.0
 
 
-def _event(kind: EventKind, frame, details: dict) -> Event:
-    return Event(kind, frame.index, float(frame.timestamp), details)
+def _emit(result: FrameResult, kind: EventKind, details: dict) -> None:
+    """An event of the frame being processed."""
+    result.events.append(Event(kind, result.frame_index, float(result.timestamp), details))

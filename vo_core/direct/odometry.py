@@ -84,6 +84,12 @@ class Keyframe:
     def active_points_world(self) -> np.ndarray:
         return transform_points(self.T_world_cam, self.active_points_cam())
 
+    @property
+    def median_depth(self) -> float:
+        """Median depth of the points the keyframe sees (its tracking reference, else its own points)."""
+        idepth = self.reference_idepth if len(self.reference_idepth) else self.active_idepth
+        return float(1.0 / np.median(idepth)) if len(idepth) else float("nan")
+
     def add_active(self, uv: np.ndarray, idepth: np.ndarray) -> None:
         self.active_uv = np.concatenate([self.active_uv, uv])
         self.active_idepth = np.concatenate([self.active_idepth, idepth])
@@ -128,12 +134,16 @@ class DirectTracking:
 
     ``rmse_before`` is the RMSE at the first guess (the motion model's, or the given prior), ``rmse_after`` the
     one the best hypothesis reached: FDMO's divergence test compares them. ``achieved_rmse`` (per level) is
-    what DSO keeps as lastCoarseRMSE once the frame is accepted."""
+    what DSO keeps as lastCoarseRMSE once the frame is accepted; ``last_rmse`` is the previous frame's, and
+    ``good_enough`` says whether a hypothesis came within DSO's reTrackThreshold of it (trackNewCoarse stops
+    trying guesses there; when none does, every motion hypothesis was worse than the last frame's fit)."""
 
     reference: Keyframe
     result: TrackingResult | None  # the best hypothesis; None when none converged
     rmse_before: float
     achieved_rmse: np.ndarray
+    last_rmse: float
+    good_enough: bool
     hypotheses_tried: int
     from_prior: bool  # tracked from a given pose rather than the motion model
     ms: float
@@ -244,8 +254,11 @@ class DirectOdometry:
         best, prior_rmse, achieved, tried = self._best_hypothesis(
             frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
         )
+        last_rmse = float(self.last_rmse[0])
+        good_enough = bool(achieved[0] < last_rmse * self.config.tracker.retrack_threshold)
         return DirectTracking(
-            reference, best, prior_rmse, achieved, tried, T_world_cam_prior is not None, _ms_since(start)
+            reference, best, prior_rmse, achieved, last_rmse, good_enough, tried, T_world_cam_prior is not None,
+            _ms_since(start),
         )
 
     def accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
@@ -288,6 +301,37 @@ class DirectOdometry:
         self.initializer = self.make_initializer()
         self.first_rmse = -1.0
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+
+    def restart_at(self, frame: DirectFrame, T_world_cam: np.ndarray, points_uv: np.ndarray,
+                   inverse_depths: np.ndarray, result: FrameResult) -> Keyframe:
+        """A new direct map at a pose found elsewhere, with depths found elsewhere (FDMO: the recovered pose and
+        the feature points in view): the frame becomes the only keyframe, hosting those points, so the world
+        frame and the scale go on. The window and its prior start over."""
+        keyframe = Keyframe(
+            frame.index, frame.timestamp, frame.frame.image, frame.pyramid, np.array(T_world_cam, float),
+            np.zeros(2), frame.exposure,
+        )
+        keyframe.add_active(np.asarray(points_uv, float), np.asarray(inverse_depths, float))
+        self.keyframes = [keyframe]
+        self.prior = MarginalizationPrior()
+        self.history = [_Tracked(keyframe.T_world_cam, keyframe.affine)]
+        self.state = _State.TRACKING
+        self.first_rmse = -1.0
+        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        selection = self.selector.select(frame.pyramid, self.config.immature.density)
+        keyframe.immature = ImmaturePoints.create(frame.pyramid, selection.uv, selection.kind, self.config.immature)
+        self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
+        self._set_tracking_reference(keyframe)
+        result.T_world_cam = keyframe.T_world_cam.copy()
+        result.tracked = True
+        result.is_keyframe = True
+        result.events.append(_event(
+            EventKind.KEYFRAME_ADDED, frame,
+            {"keyframe": keyframe.frame_index, "window": [keyframe.frame_index], "active_points": len(inverse_depths),
+             "reference_points": self.tracker.num_points, "immature_points": len(keyframe.immature),
+             "restart": True},
+        ))
+        return keyframe
 
     # ------------------------------------------------------------------------------------ initialization
 

@@ -1,0 +1,155 @@
+"""The feature map grown at direct keyframes (FDMO 4.3-4.4) on rendered frames with exact poses and depth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vo_core.features.config import FeatureConfig
+from vo_core.features.feature_map import NO_POINT, FeatureMap
+from vo_core.features.mapping import FeatureMapper
+from vo_core.features.vocabulary import load_vocabulary
+from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.synthetic import make_sequence
+
+KEYFRAME_STEP = 4  # frames between keyframes: DSO's keyframe rate on smooth motion
+
+
+def median_depth(frame) -> float:
+    return float(np.median(frame.depth[np.isfinite(frame.depth)]))
+
+
+def true_depth_errors(feature_map: FeatureMap, frames_by_index) -> tuple[np.ndarray, np.ndarray]:
+    """Per live point: |z - z_true| / z_true in the first keyframe that observes it, z_true the rendered depth
+    where the point projects (the distance to the true surface along the ray); and whether the point is mature
+    (old enough to have been judged by FDMO 4.4's 4-of-7 rule)."""
+    table = feature_map.observations()
+    first = {}
+    for keyframe, point in zip(table.keyframe, table.point):
+        first.setdefault(int(point), int(keyframe))
+    newest = feature_map.newest().keyframe_id
+    errors, mature = [], []
+    for point, frame_index in first.items():
+        keyframe = feature_map.keyframes[frame_index]
+        point_cam = transform_points(se3_inverse(keyframe.T_world_cam), feature_map.points.position[point][None])
+        u, v = np.round(CAMERA.project(point_cam)[0]).astype(int)
+        if feature_map.points.alive[point] and 0 <= u < CAMERA.width and 0 <= v < CAMERA.height:
+            truth = frames_by_index[frame_index].depth[v, u]
+            errors.append(abs(point_cam[0, 2] - truth) / truth)
+            mature.append(feature_map.points.first_keyframe[point] <= newest - FeatureConfig().maintenance.check_keyframes)
+    return np.array(errors), np.array(mature)
+
+
+def grow(config: FeatureConfig, frames, window_size: int = 7) -> tuple[FeatureMap, list]:
+    """Keyframes at the true poses, a direct window of the last ``window_size`` of them."""
+    mapper = FeatureMapper(config, CAMERA, load_vocabulary())
+    feature_map = FeatureMap()
+    reports = []
+    for position, frame in enumerate(frames):
+        window = {f.index for f in frames[max(0, position - window_size + 1):position + 1]}
+        reports.append(mapper.add_keyframe(feature_map, frame.index, frame.timestamp, frame.image, frame.T_world_cam,
+                                           median_depth(frame), window))
+    return feature_map, reports
+
+
+SEQUENCE = make_sequence("smooth", num_frames=60, seed=1, width=640, height=480)
+CAMERA = SEQUENCE.camera
+
+
+@pytest.fixture(scope="module")
+def smooth_map():
+    frames = [SEQUENCE[i] for i in range(0, len(SEQUENCE), KEYFRAME_STEP)]
+    feature_map, reports = grow(FeatureConfig(), frames)
+    return feature_map, reports, {f.index: f for f in frames}
+
+
+def test_triangulated_points_land_on_the_rendered_surface(smooth_map):
+    feature_map, reports, frames = smooth_map
+    assert sum(r.new_points for r in reports) > 500
+    errors, mature = true_depth_errors(feature_map, frames)
+    assert len(errors) > 300 and mature.sum() > 50
+    # FDMO's map quality target, median below 1 % of the depth, holds for the points that passed the 4-of-7 rule
+    # (measured 0.6 %); fresh points seen from two keyframes 3 % of the depth apart are at 2 % (all: 1.3 %).
+    assert np.median(errors[mature]) < 0.01
+    assert np.median(errors) < 0.02
+
+
+def test_later_keyframes_find_the_existing_points(smooth_map):
+    _, reports, _ = smooth_map
+    assert all(r.matched_points > 100 for r in reports[3:])
+    assert reports[0].new_points == 0 and reports[0].local_keyframes == []
+
+
+def test_the_baseline_rule_refuses_a_keyframe_too_close():
+    mapper = FeatureMapper(FeatureConfig(), CAMERA, load_vocabulary())
+    feature_map = FeatureMap()
+    first, later = SEQUENCE[10], SEQUENCE[18]
+    depth = median_depth(first)
+    near = first.T_world_cam.copy()
+    near[:3, 3] += np.array([0.01, 0.0, 0.0]) * depth  # baseline / depth = 0.01 < 0.02
+    mapper.add_keyframe(feature_map, 1, 1.0, first.image, first.T_world_cam, depth, {1, 2, 3})
+    report = mapper.add_keyframe(feature_map, 2, 2.0, first.image, near, depth, {1, 2, 3})
+    assert report.refused_baselines == 1 and report.new_points == 0
+    baseline = np.linalg.norm(later.T_world_cam[:3, 3] - first.T_world_cam[:3, 3])
+    assert baseline > 0.02 * max(depth, median_depth(later))
+    report = mapper.add_keyframe(feature_map, 3, 3.0, later.image, later.T_world_cam, median_depth(later), {1, 2, 3})
+    assert report.refused_baselines == 0 and report.new_points > 50
+
+
+def test_a_point_not_found_again_is_culled_after_seven_keyframes(smooth_map):
+    feature_map, reports, _ = smooth_map
+    points = feature_map.points
+    table = feature_map.observations()
+    views = np.bincount(table.point, minlength=len(points))
+    newest = feature_map.newest().keyframe_id
+    judged = points.alive & (points.first_keyframe <= newest - FeatureConfig().maintenance.check_keyframes)
+    assert sum(r.culled_points for r in reports) > 0
+    assert np.all(views[judged] >= 2)  # every judged point that survived keeps at least two views
+
+
+def test_four_of_seven_rule_on_a_point_seen_once():
+    config = FeatureConfig()
+    frames = [SEQUENCE[i] for i in range(0, 40, KEYFRAME_STEP)]
+    mapper = FeatureMapper(config, CAMERA, load_vocabulary())
+    feature_map = FeatureMap()
+    for frame in frames[:2]:
+        mapper.add_keyframe(feature_map, frame.index, frame.timestamp, frame.image, frame.T_world_cam,
+                            median_depth(frame), {f.index for f in frames})
+    # A point the two keyframes see exactly (it reprojects onto its features: the adjustment keeps it) but whose
+    # descriptor no later keyframe will match (random bits are ~128 bits from any descriptor, beyond 100).
+    first, second = list(feature_map.keyframes.values())
+    feature_first, feature_second = (np.flatnonzero(k.point_ids == NO_POINT)[0] for k in (first, second))
+    u, v = np.round(first.features.uv[feature_first]).astype(int)
+    ray = CAMERA.unproject(first.features.uv[feature_first][None])[0]
+    point = transform_points(first.T_world_cam, (ray * SEQUENCE[frames[0].index].depth[v, u])[None])
+    second.features.uv[feature_second] = CAMERA.project(transform_points(se3_inverse(second.T_world_cam), point))[0]
+    descriptor = np.random.default_rng(0).integers(0, 256, (1, 32), dtype=np.uint8)
+    lonely = feature_map.points.add(point, descriptor, second.keyframe_id, np.array([1.0]), np.array([0]))[0]
+    first.point_ids[feature_first] = second.point_ids[feature_second] = lonely
+    for frame in frames[2:]:
+        mapper.add_keyframe(feature_map, frame.index, frame.timestamp, frame.image, frame.T_world_cam,
+                            median_depth(frame), {f.index for f in frames})
+        if feature_map.newest().keyframe_id < second.keyframe_id + config.maintenance.check_keyframes:
+            assert feature_map.points.alive[lonely]  # not judged before seven keyframes have passed
+    assert not feature_map.points.alive[lonely]
+    assert all(lonely not in k.point_ids for k in feature_map.keyframes.values())
+
+
+def test_redundant_keyframes_leave_once_out_of_the_direct_window():
+    frames = [SEQUENCE[i] for i in range(0, 60, 2)]  # keyframes close together: most points seen by many
+    feature_map, reports = grow(FeatureConfig(), frames, window_size=5)
+    culled = [k for r in reports for k in r.culled_keyframes]
+    assert culled, "no keyframe was culled"
+    window = {f.index for f in frames[-5:]}
+    assert not window & set(culled)  # never one the direct window still holds
+    assert all(k not in feature_map.keyframes for k in culled)
+    assert all(k.image is None for k in feature_map.keyframes.values() if k.frame_index not in window)
+
+
+def test_poses_follow_the_direct_keyframes(smooth_map):
+    feature_map, _, _ = smooth_map
+    some = next(iter(feature_map.keyframes))
+    moved = feature_map.keyframes[some].T_world_cam.copy()
+    moved[:3, 3] += 0.01
+    feature_map.sync_poses({some: moved, 10_000: np.eye(4)})  # unknown keyframes are ignored
+    np.testing.assert_array_equal(feature_map.keyframes[some].T_world_cam, moved)

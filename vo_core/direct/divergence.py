@@ -1,0 +1,69 @@
+"""Whether a direct alignment can be trusted (FDMO section 4.2.1).
+
+FDMO's test: the optimization of Eq. 2 diverged when RMSE_after / RMSE_before > 1 + epsilon, epsilon = 0.1,
+the RMSE before being the one at the constant-velocity guess. It misses a case that matters: after a jump the
+guess is so wrong that the optimization lowers the RMSE while locking onto a wrong pose (teddy with 20 frames
+dropped at frame 100: RMSE 15.6 -> 13.5, ratio 0.87, a pose 20 cm off). DSO itself knows something is off
+then: it tried every motion hypothesis and none came within ``retrack_threshold`` (1.5) of the last frame's
+RMSE (trackNewCoarse's stopping rule). That is not proof of divergence (fast handheld motion does it in 4 % of
+teddy's frames), so such a result is SUSPECT: the system has it checked by the feature map, which decides.
+A result that did not converge at all is LOST (DSO's lost: no hypothesis converged, too few residuals).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # the settings are read by vo_core.config, which must not load the direct half's kernels
+    from vo_core.direct.odometry import DirectTracking
+
+
+class Verdict(Enum):
+    TRUSTED = "trusted"
+    SUSPECT = "suspect"  # every motion hypothesis was worse than the last frame's fit: to be checked
+    DIVERGED = "diverged"  # FDMO 4.2.1: the optimization made the RMSE worse
+    LOST = "lost"  # no hypothesis converged
+
+
+@dataclass
+class DivergenceConfig:
+    epsilon: float = 0.1  # FDMO 4.2.1: diverged when RMSE_after / RMSE_before > 1 + 0.1
+    check_when_no_hypothesis_good_enough: bool = True  # ours (DSO's reTrackThreshold as a suspicion, see above)
+
+
+@dataclass
+class Judgement:
+    verdict: Verdict
+    ratio: float  # RMSE_after / RMSE_before (NaN when lost)
+    threshold: float  # 1 + epsilon
+    reason: str
+
+    def details(self, tracking: DirectTracking) -> dict:
+        return {
+            "verdict": self.verdict.value, "reason": self.reason, "ratio": _rounded(self.ratio),
+            "threshold": self.threshold, "rmse_before": _rounded(tracking.rmse_before),
+            "rmse_after": _rounded(tracking.rmse_after), "last_rmse": _rounded(tracking.last_rmse),
+            "hypotheses_tried": tracking.hypotheses_tried,
+        }
+
+
+def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
+    threshold = 1.0 + config.epsilon
+    if not tracking.converged:
+        return Judgement(Verdict.LOST, float("nan"), threshold, "no motion hypothesis converged")
+    ratio = tracking.rmse_after / tracking.rmse_before if tracking.rmse_before > 0 else float("inf")
+    if ratio > threshold:
+        return Judgement(Verdict.DIVERGED, ratio, threshold, f"RMSE after / before {ratio:.2f} > {threshold:.2f}")
+    if config.check_when_no_hypothesis_good_enough and not tracking.good_enough:
+        reason = (f"no motion hypothesis ({tracking.hypotheses_tried} tried) came within the retrack threshold of "
+                  f"the last frame's RMSE ({tracking.rmse_after:.2f} against {tracking.last_rmse:.2f})")
+        return Judgement(Verdict.SUSPECT, ratio, threshold, reason)
+    return Judgement(Verdict.TRUSTED, ratio, threshold, "")
+
+
+def _rounded(value: float) -> float | None:
+    return round(float(value), 3) if np.isfinite(value) else None

@@ -1,0 +1,97 @@
+"""Settings of the feature half (FDMO sections 4.2.2, 4.3 and 4.4; ORB-SLAM2 where FDMO follows it).
+
+``FDMO`` below means Younes, Asmar and Zelek 2019 (../shared/papers/000); ``ORB-SLAM2`` means
+raulmur/ORB_SLAM2 (src/ORBextractor.cc, ORBmatcher.cc, LocalMapping.cc, Tracking.cc); ``DBoW2`` means
+Galvez-Lopez and Tardos 2012 and its TemplatedVocabulary. Values marked "ours" are in neither.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class OrbConfig:
+    """ORB features of a keyframe or of a frame to recover (FDMO 4.3: ORB on 8 levels, scale factor 1.2)."""
+
+    num_features: int = 1500  # FDMO 4.3 / ORB-SLAM2 TUM and EuRoC settings: 1000-2000 per image
+    scale_factor: float = 1.2  # FDMO eq. 6: Sf = 1.2
+    num_levels: int = 8  # FDMO eq. 6: 0 <= n < 8
+    fast_threshold: int = 20  # ORB-SLAM2 iniThFAST
+    min_fast_threshold: int = 7  # ORB-SLAM2 minThFAST: used in cells where the first threshold finds nothing
+    cell_size: int = 30  # ORB-SLAM2 ORBextractor W = 30: FAST runs per cell so that features spread
+    edge_threshold: int = 19  # ORB-SLAM2 EDGE_THRESHOLD (the 31-px patch and its orientation disc fit inside)
+    patch_size: int = 31  # ORB-SLAM2 PATCH_SIZE
+
+
+@dataclass
+class VocabularyConfig:
+    """The bag-of-words vocabulary (DBoW2: hierarchical k-majority tree, tf-idf weights, L1 score)."""
+
+    branching: int = 10  # DBoW2 k (ORB-SLAM2's ORBvoc: k = 10)
+    depth: int = 4  # DBoW2 L: 10^4 words (ORBvoc has L = 6; a small vocabulary shipped in assets/, ours)
+    direct_index_levels_up: int = 2  # ORB-SLAM2 ComputeBoW: features share a node 2 levels above the words
+    path: str = ""  # "": the vocabulary bundled with the package (assets/vocabulary/)
+    # DBoW2 HKmeansStep iterates until no descriptor changes cluster; a cap keeps training time bounded (ours).
+    max_kmeans_iterations: int = 30
+    # ORB-SLAM2 KeyFrameDatabase::DetectRelocalizationCandidates: a candidate shares at least 0.8 x the largest
+    # number of words any keyframe shares with the query.
+    min_common_words_ratio: float = 0.8
+
+
+@dataclass
+class MappingConfig:
+    """The feature map grown at every direct keyframe (FDMO 4.3, Fig. 4): local map points searched in the new
+    keyframe, epipolar matching with the local keyframes at their direct poses, triangulation, structure-only BA."""
+
+    local_keyframes: int = 10  # FDMO 4.3: "local keyframes surrounding it"; ORB-SLAM2 LocalMapping: 10 (20 mono)
+    projection_radius_px: float = 3.0  # ORB-SLAM2 SearchLocalPoints / Fuse: th = 3, times the level's scale
+    projection_max_distance: int = 100  # ORB-SLAM2 ORBmatcher TH_HIGH
+    projection_ratio: float = 0.8  # ORB-SLAM2 SearchByProjection's nnratio in the local map search
+    epipolar_max_distance: int = 50  # ORB-SLAM2 SearchForTriangulation: TH_LOW
+    epipolar_ratio: float = 0.6  # ORB-SLAM2 LocalMapping::CreateNewMapPoints: ORBmatcher(0.6, false)
+    min_baseline_depth_ratio: float = 0.02  # FDMO 4.4: no triangulation below baseline / depth 0.02
+    max_parallax_cos: float = 0.9998  # ORB-SLAM2 CreateNewMapPoints: rays closer than ~1.1 deg are not used
+    chi2_two_dof: float = 5.991  # ORB-SLAM2: 95 % of a 2-DOF chi-square, on the level-normalized squared error
+    scale_consistency: float = 1.5  # ORB-SLAM2 CreateNewMapPoints: ratioFactor = 1.5 * scale factor
+    structure_iterations: int = 10  # FDMO 4.3: ten Gauss-Newton iterations of Eq. 3 per point
+
+
+@dataclass
+class MaintenanceConfig:
+    """Feature map maintenance (FDMO 4.4) and the covisibility graph (Strasdat et al. 2011, as ORB-SLAM2)."""
+
+    check_keyframes: int = 7  # FDMO 4.4: a point is judged on the 7 keyframes after the one that created it
+    min_found: int = 4  # FDMO 4.4: ... and must have been found in at least 4 of them
+    redundancy: float = 0.9  # FDMO 4.4 (after ORB-SLAM2): 90 % of a keyframe's points seen elsewhere
+    redundant_observers: int = 3  # ORB-SLAM2 KeyFrameCulling: "elsewhere" = in at least 3 other keyframes
+    min_covisibility: int = 15  # ORB-SLAM2 KeyFrame::UpdateConnections: an edge needs 15 shared points
+
+
+@dataclass
+class RecoveryConfig:
+    """Feature-based tracking recovery (FDMO 4.2.2, Fig. 3; ORB-SLAM2 Tracking::Relocalization)."""
+
+    global_search: bool = True  # after the covisible keyframes fail, every keyframe of the map (ORB-SLAM2's way)
+    max_candidates: int = 5  # keyframes tried per stage, best bag-of-words score first (ours)
+    bow_ratio: float = 0.75  # ORB-SLAM2 Relocalization: ORBmatcher(0.75, true)
+    bow_max_distance: int = 50  # ORB-SLAM2 SearchByBoW: TH_LOW
+    min_bow_matches: int = 15  # ORB-SLAM2 Relocalization: candidates with fewer matches are discarded
+    ransac_iterations: int = 300  # ORB-SLAM2 PnPsolver::SetRansacParameters(0.99, 10, 300, ...)
+    ransac_confidence: float = 0.99
+    ransac_threshold_px: float = 2.45  # sqrt(5.991): ORB-SLAM2's chi-square test at level 0
+    min_ransac_inliers: int = 10  # ORB-SLAM2 PnPsolver minInliers
+    guided_radius_px: float = 2.5  # FDMO 4.2.2: a 5x5 search window around each projected point
+    guided_max_distance: int = 100  # ORB-SLAM2 TH_HIGH
+    guided_ratio: float = 0.9  # ORB-SLAM2 Relocalization's second SearchByProjection: ORBmatcher(0.9, true)
+    min_inliers: int = 30  # FDMO 4.2.2 / ORB-SLAM2 Relocalization: a pose needs 30 inliers
+    tracking_radius_px: float = 15.0  # ORB-SLAM2 TrackWithMotionModel: th = 15 (monocular)
+
+
+@dataclass
+class FeatureConfig:
+    orb: OrbConfig = field(default_factory=OrbConfig)
+    vocabulary: VocabularyConfig = field(default_factory=VocabularyConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    maintenance: MaintenanceConfig = field(default_factory=MaintenanceConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)

@@ -1,0 +1,265 @@
+"""The feature map M^f of FDMO (section 4): keyframes with ORB features, 3D map points, and who sees what.
+
+A feature keyframe is the twin of a direct keyframe: it carries the direct keyframe's frame index and pose,
+and never a pose of its own (FDMO's design: one pose per keyframe, the direct one; ``sync_poses`` follows the
+window optimization). Its ``point_ids`` say, per feature, which map point the feature observes (-1: none):
+these arrays are the only record of observations, so the covisibility graph (Strasdat et al. 2011; an edge
+per pair of keyframes that share points, weighted by how many) is computed from them when asked and is
+always up to date, however points and keyframes come and go.
+
+Map points live in flat arrays (position, representative descriptor, the keyframe that created them, the
+distance and pyramid level they were seen at), indexed by point id; a removed point keeps its row, marked
+dead, so that ids stay valid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vo_core.features.config import OrbConfig
+from vo_core.features.matcher import hamming
+from vo_core.features.orb import Features
+from vo_core.features.vocabulary import BowVector, InvertedIndex
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_inverse, transform_points
+
+NO_POINT = -1
+
+
+@dataclass
+class FeatureKeyframe:
+    keyframe_id: int  # order of creation in the feature map (FDMO 4.4 counts keyframes with it)
+    frame_index: int  # the direct twin's frame index: the key both halves know a keyframe by
+    timestamp: float
+    T_world_cam: np.ndarray
+    features: Features
+    bow: BowVector
+    nodes: np.ndarray  # (N,) vocabulary node of each feature (DBoW2's direct index)
+    scene_depth: float = np.nan  # median depth of the direct twin's points (FDMO 4.4's baseline / depth rule)
+    point_ids: np.ndarray = field(default=None)  # (N,) int64, map point of each feature or NO_POINT
+    image: np.ndarray | None = None  # kept while the direct twin is in the window (for viewers), then dropped
+    in_direct_window: bool = True
+
+    def __post_init__(self) -> None:
+        if self.point_ids is None:
+            self.point_ids = np.full(len(self.features), NO_POINT, dtype=np.int64)
+
+    @property
+    def centre(self) -> np.ndarray:
+        return self.T_world_cam[:3, 3]
+
+    def observed(self) -> np.ndarray:
+        """Feature indices that observe a map point."""
+        return np.flatnonzero(self.point_ids >= 0)
+
+
+class MapPoints:
+    """Struct-of-arrays storage of the map points; ids are row numbers and stay valid after removal."""
+
+    def __init__(self, descriptor_bytes: int):
+        self.position = np.zeros((0, 3))
+        self.descriptor = np.zeros((0, descriptor_bytes), np.uint8)
+        self.first_keyframe = np.zeros(0, np.int64)  # keyframe_id of the keyframe that created the point
+        self.reference_distance = np.zeros(0)  # camera distance at creation ...
+        self.reference_level = np.zeros(0, np.int64)  # ... and the level it was matched at (scale prediction)
+        self.alive = np.zeros(0, bool)
+
+    def __len__(self) -> int:
+        return len(self.alive)
+
+    @property
+    def num_alive(self) -> int:
+        return int(self.alive.sum())
+
+    def add(self, position, descriptor, first_keyframe: int, reference_distance, reference_level) -> np.ndarray:
+        start = len(self)
+        count = len(position)
+        self.position = np.concatenate([self.position, position])
+        self.descriptor = np.concatenate([self.descriptor, descriptor])
+        self.first_keyframe = np.concatenate([self.first_keyframe, np.full(count, first_keyframe, np.int64)])
+        self.reference_distance = np.concatenate([self.reference_distance, reference_distance])
+        self.reference_level = np.concatenate([self.reference_level, np.asarray(reference_level, np.int64)])
+        self.alive = np.concatenate([self.alive, np.ones(count, bool)])
+        return np.arange(start, start + count)
+
+
+@dataclass
+class Observations:
+    """Every observation of the keyframes asked for, as parallel arrays."""
+
+    keyframe: np.ndarray  # (L,) frame index of the observing keyframe
+    feature: np.ndarray  # (L,) feature index in that keyframe
+    point: np.ndarray  # (L,) map point id
+
+    def __len__(self) -> int:
+        return len(self.point)
+
+
+class FeatureMap:
+    def __init__(self, descriptor_bytes: int = 32):
+        self.keyframes: dict[int, FeatureKeyframe] = {}  # frame index -> keyframe, in order of creation
+        self.points = MapPoints(descriptor_bytes)
+        self.index = InvertedIndex()
+        self.next_keyframe_id = 0
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    # ------------------------------------------------------------------------------------ keyframes
+
+    def add_keyframe(self, keyframe: FeatureKeyframe) -> None:
+        self.keyframes[keyframe.frame_index] = keyframe
+        self.index.add(keyframe.frame_index, keyframe.bow)
+        self.next_keyframe_id = keyframe.keyframe_id + 1
+
+    def remove_keyframe(self, frame_index: int) -> None:
+        """A culled keyframe takes its observations along; points left with fewer than two observations die
+        (a point needs two views to have been triangulated, and one to be found again)."""
+        keyframe = self.keyframes.pop(frame_index)
+        self.index.remove(frame_index)
+        orphans = keyframe.point_ids[keyframe.point_ids >= 0]
+        counts = self.observation_counts(orphans)
+        self.points.alive[orphans[counts < 2]] = False
+        self._forget_dead()
+
+    def newest(self) -> FeatureKeyframe | None:
+        return next(reversed(self.keyframes.values())) if self.keyframes else None
+
+    def sync_poses(self, poses: dict[int, np.ndarray]) -> None:
+        """The direct keyframes' poses (after a window optimization) become the feature keyframes' own."""
+        for frame_index, T_world_cam in poses.items():
+            keyframe = self.keyframes.get(frame_index)
+            if keyframe is not None:
+                keyframe.T_world_cam = T_world_cam.copy()
+
+    # ------------------------------------------------------------------------------------ observations
+
+    def observations(self, frame_indices=None) -> Observations:
+        keyframes = [self.keyframes[i] for i in (self.keyframes if frame_indices is None else frame_indices)]
+        parts = [(np.full(len(k.observed()), k.frame_index), k.observed()) for k in keyframes]
+        if not parts:
+            empty = np.zeros(0, np.int64)
+            return Observations(empty, empty, empty)
+        keyframe = np.concatenate([p[0] for p in parts]).astype(np.int64)
+        feature = np.concatenate([p[1] for p in parts]).astype(np.int64)
+        point = np.concatenate([k.point_ids[k.observed()] for k in keyframes])
+        return Observations(keyframe, feature, point)
+
+    def pixels_of(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel (L, 2) and pyramid level (L,) of each observation (keyframe, feature)."""
+        uv = np.zeros((len(feature_of), 2))
+        level = np.zeros(len(feature_of), np.int64)
+        for frame_index in np.unique(keyframe_of):
+            mine = keyframe_of == frame_index
+            features = self.keyframes[int(frame_index)].features
+            uv[mine], level[mine] = features.uv[feature_of[mine]], features.level[feature_of[mine]]
+        return uv, level
+
+    def keyframe_ids_of(self, frame_indices: np.ndarray) -> np.ndarray:
+        """The keyframe_id (creation order) of keyframes given by frame index."""
+        frames = np.array(list(self.keyframes), np.int64)
+        ids = np.array([k.keyframe_id for k in self.keyframes.values()], np.int64)
+        order = np.argsort(frames)
+        return ids[order][np.searchsorted(frames[order], frame_indices)]
+
+    def observation_counts(self, point_ids: np.ndarray) -> np.ndarray:
+        """How many keyframes observe each of ``point_ids``."""
+        observed = self.observations().point
+        return np.bincount(observed, minlength=len(self.points))[np.asarray(point_ids, np.int64)]
+
+    def covisibility(self, frame_index: int) -> dict[int, int]:
+        """Weights of the covisibility graph's edges at a keyframe: other keyframe -> shared points."""
+        ids = self.keyframes[frame_index].point_ids
+        mine = np.zeros(len(self.points), bool)
+        mine[ids[ids >= 0]] = True
+        table = self.observations()
+        shared = mine[table.point] & (table.keyframe != frame_index)
+        keyframes, counts = np.unique(table.keyframe[shared], return_counts=True)
+        return dict(zip(keyframes.tolist(), counts.tolist()))
+
+    def covisible_keyframes(self, frame_index: int, min_weight: int, limit: int | None = None) -> list[int]:
+        """Neighbours in the covisibility graph, most shared points first (ORB-SLAM2 GetBestCovisibilityKeyFrames)."""
+        weights = self.covisibility(frame_index)
+        ranked = sorted((k for k, w in weights.items() if w >= min_weight), key=lambda k: (-weights[k], -k))
+        return ranked[:limit]
+
+    def points_of(self, frame_indices) -> np.ndarray:
+        """Ids of the live points observed by any of the keyframes."""
+        ids = [self.keyframes[i].point_ids for i in frame_indices if i in self.keyframes]
+        if not ids:
+            return np.zeros(0, np.int64)
+        ids = np.unique(np.concatenate(ids))
+        ids = ids[ids >= 0]
+        return ids[self.points.alive[ids]]
+
+    def remove_points(self, point_ids: np.ndarray) -> None:
+        self.points.alive[np.asarray(point_ids, np.int64)] = False
+        self._forget_dead()
+
+    def remove_observations(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> None:
+        """Outlier observations leave their keyframes (their points may stay, seen elsewhere)."""
+        for frame_index in np.unique(keyframe_of):
+            mine = keyframe_of == frame_index
+            self.keyframes[int(frame_index)].point_ids[feature_of[mine]] = NO_POINT
+
+    def _forget_dead(self) -> None:
+        """No keyframe keeps an observation of a dead point."""
+        dead = ~self.points.alive
+        for keyframe in self.keyframes.values():
+            observed = keyframe.observed()
+            keyframe.point_ids[observed[dead[keyframe.point_ids[observed]]]] = NO_POINT
+
+    def representative_descriptors(self, point_ids: np.ndarray) -> None:
+        """ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors: each point's descriptor becomes the observation
+        with the least median Hamming distance to its other observations."""
+        point_ids = np.unique(np.asarray(point_ids, np.int64))
+        if len(point_ids) == 0:
+            return
+        table = self.observations()
+        wanted = np.isin(table.point, point_ids)
+        order = np.argsort(table.point[wanted], kind="stable")
+        points = table.point[wanted][order]
+        descriptors = np.stack([
+            self.keyframes[int(k)].features.descriptors[f]
+            for k, f in zip(table.keyframe[wanted][order], table.feature[wanted][order])
+        ]) if len(points) else np.zeros((0, self.points.descriptor.shape[1]), np.uint8)
+        starts = np.flatnonzero(np.r_[True, points[1:] != points[:-1]]) if len(points) else np.zeros(0, int)
+        ends = np.r_[starts[1:], len(points)]
+        for start, end in zip(starts, ends):
+            group = descriptors[start:end]
+            if len(group) > 2:
+                best = int(np.argmin(np.median(hamming(group, group), axis=1)))
+                self.points.descriptor[points[start]] = group[best]
+
+
+@dataclass
+class Projection:
+    """Map points seen from a camera: where they land and at which pyramid level they should be detected."""
+
+    point_ids: np.ndarray  # (K,) the points in view
+    uv: np.ndarray  # (K, 2)
+    level: np.ndarray  # (K,) predicted level
+    distance: np.ndarray  # (K,) from the camera centre
+
+
+def project_points(points: MapPoints, point_ids: np.ndarray, T_world_cam: np.ndarray, camera: PinholeCamera,
+                   orb: OrbConfig) -> Projection:
+    """The points in view of a camera (ORB-SLAM2 Frame::isInFrustum): in front of it, inside the image, and at a
+    distance the ORB pyramid covers (MapPoint::PredictScale: a point seen at level n from distance d appears at
+    level n + log_Sf(d / distance); more than one level outside the pyramid is out of view)."""
+    point_ids = np.asarray(point_ids, np.int64)
+    points_cam = transform_points(se3_inverse(T_world_cam), points.position[point_ids])
+    front = points_cam[:, 2] > 0
+    uv = np.full((len(point_ids), 2), -1.0)
+    uv[front] = camera.project(points_cam[front])
+    distance = np.linalg.norm(points_cam, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.log(points.reference_distance[point_ids] / np.maximum(distance, 1e-12)) / np.log(orb.scale_factor)
+    level = np.round(points.reference_level[point_ids] + shift)
+    top = orb.num_levels - 1
+    in_pyramid = np.isfinite(level) & (level >= -1) & (level <= top + 1)
+    visible = front & camera.in_image(uv) & in_pyramid
+    level = np.clip(np.nan_to_num(level[visible]), 0, top).astype(np.int64)
+    return Projection(point_ids[visible], uv[visible], level, distance[visible])

@@ -1,0 +1,69 @@
+"""The feature half of FDMO as the system uses it: a feature map that grows at every direct keyframe, a
+recovery that measures a pose from it, and feature-based tracking. Like DirectOdometry it offers steps and
+decides nothing: vo_core/system.py calls them in the order of FDMO's flowcharts.
+
+Nothing here estimates a keyframe pose: keyframes take their direct twins' poses (``add_keyframe`` first
+copies the window's optimized poses over, FDMO 4.3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vo_core.features.config import FeatureConfig
+from vo_core.features.feature_map import FeatureMap, project_points
+from vo_core.features.mapping import FeatureMapper, MappingReport
+from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
+from vo_core.features.vocabulary import load_vocabulary
+from vo_core.geometry.camera import PinholeCamera
+
+
+class FeatureOdometry:
+    def __init__(self, config: FeatureConfig, camera: PinholeCamera):
+        self.config = config
+        self.camera = camera
+        vocabulary = load_vocabulary(config.vocabulary)
+        self.map = FeatureMap()
+        self.mapper = FeatureMapper(config, camera, vocabulary)
+        self.relocalizer = Relocalizer(config, camera, vocabulary)
+
+    @property
+    def empty(self) -> bool:
+        return len(self.map) == 0
+
+    def reset(self) -> None:
+        """A map at a new scale starts over (the direct map initialized again from scratch)."""
+        self.map = FeatureMap()
+
+    def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
+                     scene_depth: float, window_poses: dict[int, np.ndarray]) -> MappingReport:
+        """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses."""
+        self.map.sync_poses(window_poses)
+        return self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
+                                        set(window_poses))
+
+    def recover(self, image: np.ndarray, last_keyframe: int | None) -> RecoveryOutcome:
+        return self.relocalizer.recover(self.map, image, last_keyframe)
+
+    def track(self, image: np.ndarray, T_world_guess: np.ndarray, around_keyframe: int) -> RecoveryOutcome:
+        return self.relocalizer.track(self.map, image, T_world_guess, around_keyframe)
+
+    def explained(self, pose: PoseFromMap, T_world_cam: np.ndarray, frame: FrameFeatures) -> float:
+        return self.relocalizer.explained(self.map, pose, T_world_cam, frame)
+
+    def depths_in_view(self, pose: PoseFromMap, frame: FrameFeatures) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels and inverse depths of the map points the pose's inliers matched in the frame: where a direct
+        map restarted at this pose gets its first depths (at the feature map's scale). The pixels are the
+        measured features, the depths the points' along their rays."""
+        point_ids, feature_ids = pose.point_ids[pose.inlier], pose.feature_ids[pose.inlier]
+        view = project_points(self.map.points, point_ids, pose.T_world_cam, self.camera, self.config.orb)
+        keep = np.isin(point_ids, view.point_ids)
+        points_cam = np.linalg.solve(pose.T_world_cam, np.c_[self.map.points.position[point_ids[keep]],
+                                                             np.ones(int(keep.sum()))].T).T[:, :3]
+        return frame.features.uv[feature_ids[keep]], 1.0 / points_cam[:, 2]
+
+    def points_world(self) -> np.ndarray:
+        return self.map.points.position[self.map.points.alive]
+
+    def keyframe_poses(self) -> dict[int, np.ndarray]:
+        return {k.frame_index: k.T_world_cam for k in self.map.keyframes.values()}
