@@ -1,10 +1,11 @@
-"""The command line: ``fdmo run | eval | info | plot``.
+"""The command line: ``fdmo run | eval | info | plot | vocabulary``.
 
     fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
              [--start N] [--end N] [--drop FRAME:COUNT ...] [--gt FILE] [--rrd FILE | --no-rrd]
              [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
+    fdmo vocabulary train IMAGE... --out FILE [--branching K] [--depth L] [--seed S]
     fdmo plot RESULT_DIR [--out FILE] [--gt FILE] [--align sim3|se3|none] [--plane xy|xz|yz]
 
 Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
@@ -33,6 +34,7 @@ from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
 from vo_core.errors import InputError
 from vo_core.eval import ALIGNMENTS, DEFAULT_MAX_DT_S
 from vo_core.events import EventKind
+from vo_core.features.config import VocabularyConfig
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 2
@@ -119,6 +121,17 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("--gt", type=Path, metavar="FILE", help="ground truth (default: the run's groundtruth.tum)")
     plot.add_argument("--align", choices=ALIGNMENTS, default="sim3", help="alignment before the errors")
     plot.add_argument("--plane", choices=PLANES, help="plane of the top view (default: the ground truth's widest)")
+
+    vocabulary = commands.add_parser("vocabulary", help="the bag-of-words vocabulary of the feature map")
+    vocabulary_commands = vocabulary.add_subparsers(dest="vocabulary_command", required=True,
+                                                    parser_class=_OneLineParser)
+    train = vocabulary_commands.add_parser("train", help="train a vocabulary on the ORB features of images")
+    train.add_argument("images", nargs="+", type=Path, metavar="IMAGE",
+                       help="image files (a folder: every image in it, sorted)")
+    train.add_argument("--out", type=Path, required=True, help="vocabulary file to write (.npz)")
+    train.add_argument("--branching", type=int, default=VocabularyConfig.branching, help="k (default: %(default)s)")
+    train.add_argument("--depth", type=int, default=VocabularyConfig.depth, help="L (default: %(default)s)")
+    train.add_argument("--seed", type=int, default=0, help="seed of the k-means++ choices (default: %(default)s)")
     return parser
 
 
@@ -351,9 +364,39 @@ def _short(value: Any) -> str:
     return str(value)
 
 
+def command_vocabulary(args: argparse.Namespace) -> int:
+    """``fdmo vocabulary train IMAGES... --out FILE``: then ``--set features.vocabulary.path=FILE`` uses it."""
+    from vo_core.features.vocabulary import train_vocabulary_from_images
+
+    if args.branching < 2 or args.depth < 1:
+        raise InputError(f"a vocabulary needs --branching >= 2 and --depth >= 1, not {args.branching} and {args.depth}")
+    paths = [path for given in args.images for path in _image_files(given)]
+    config = VocabularyConfig(branching=args.branching, depth=args.depth)
+    vocabulary = train_vocabulary_from_images(paths, config, seed=args.seed)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    vocabulary.save(args.out)
+    print(f"wrote {args.out}: {vocabulary.num_words} words (k {args.branching}, L {args.depth}) from {len(paths)} "
+          f"images")
+    return EXIT_OK
+
+
+def _image_files(path: Path) -> list[Path]:
+    from vo_core.datasets.image_folder import image_files
+
+    if path.is_dir():
+        found = image_files(path)
+        if not found:
+            raise InputError(f"{path}: no images in this folder")
+        return found
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    return [path]
+
+
 # ------------------------------------------------------------------------------------------------ main
 
-COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plot": command_plot}
+COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plot": command_plot,
+            "vocabulary": command_vocabulary}
 
 
 def main(argv: SequenceOf[str] | None = None) -> int:

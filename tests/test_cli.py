@@ -155,7 +155,7 @@ def test_run_writes_the_five_files_and_they_parse_back(dataset, tmp_path, script
     # The scripted poses are the truth at twice the scale: Sim(3) alignment makes them exact.
     assert metrics["evaluation"]["ate"]["rmse"] < 1e-6
     config = load_config(out / "config.yaml")
-    assert (config.method, config.seed) == ("direct", 3)
+    assert (config.method, config.seed) == ("fdmo", 3)
 
 
 def test_a_rerun_recording_is_written_by_default_or_where_asked(dataset, tmp_path, scripted, capsys):
@@ -325,7 +325,7 @@ def test_the_summary_names_what_befell_the_run(dataset, tmp_path, scripted, caps
     }
     code, stdout, _ = run_cli(capsys, "run", broken, "--out", tmp_path / "r", "--no-rrd", "--drop", "9:2")
     assert code == 0
-    assert "(direct, completed): tracked 7/9 frames, initialized at frame 2, 1 keyframe," in stdout
+    assert "(fdmo, completed): tracked 7/9 frames, initialized at frame 2, 1 keyframe," in stdout
     assert ("1 unreadable frame skipped, 2 frames dropped, 1 tracking failure, 2 divergences, "
             "2 recoveries (1 succeeded, 1 failed), 1 reinitialization") in stdout
     assert "ATE rmse" in stdout and f"results in {tmp_path / 'r'}" in stdout
@@ -357,7 +357,7 @@ def test_a_signal_ends_the_run_after_the_current_frame_with_a_summary_and_130(da
     code, stdout, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd")
     assert code == 130 and stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
     assert scripted[0][-1].seen == list(range(7))  # frame 6, during which the signal came, was finished
-    assert "(direct, interrupted): tracked 5/7 frames" in stdout
+    assert "(fdmo, interrupted): tracked 5/7 frames" in stdout
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "interrupted" and metrics["processed_frames"] == 7
     assert len(read_trajectory(out / "trajectory.tum")) == 5
@@ -581,3 +581,24 @@ def test_output_read_by_a_reader_that_goes_away_ends_quietly(dataset):
     process.stdout.close()  # the only reader: fdmo's first write meets a broken pipe
     stderr = process.stderr.read().decode()
     assert process.wait(timeout=60) == 141 and stderr == ""
+
+
+# ------------------------------------------------------------------------------------------------ vocabulary
+
+
+def test_vocabulary_train_writes_a_file_the_feature_map_can_use(rendered_dataset, tmp_path, capsys):
+    from vo_core.features.config import VocabularyConfig
+    from vo_core.features.vocabulary import load_vocabulary
+
+    out = tmp_path / "voc.npz"
+    code, stdout, _ = run_cli(capsys, "vocabulary", "train", rendered_dataset / "images", "--out", out,
+                              "--branching", "4", "--depth", "2")
+    assert code == 0 and "16 words" in stdout
+    vocabulary = load_vocabulary(VocabularyConfig(path=str(out), direct_index_levels_up=1))
+    assert (vocabulary.branching, vocabulary.depth) == (4, 2)
+
+
+def test_vocabulary_train_refuses_what_is_not_an_image(tmp_path, capsys):
+    (tmp_path / "notes.png").write_text("not an image")
+    code, _, stderr = run_cli(capsys, "vocabulary", "train", tmp_path / "notes.png", "--out", tmp_path / "v.npz")
+    assert code == 2 and "notes.png" in stderr and len(stderr.strip().splitlines()) == 1

@@ -51,7 +51,7 @@ class HybridConfig:
 
 @dataclass
 class Config:
-    method: str = "direct"  # the main job until fdmo lands: DSO-style direct odometry with its window optimization
+    method: str = "fdmo"  # FDMO: direct odometry, the feature map beside it, divergence test and recovery
     seed: int = 0  # every random choice (RANSAC, sampling) draws from generators seeded with this
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     klt: KltConfig = field(default_factory=KltConfig)

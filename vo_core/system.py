@@ -167,9 +167,11 @@ class Odometry:
             if outcome.succeeded:
                 _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
                 return self._continue_from(frame, outcome, None, result)
-        self.direct.initialize(frame, result)
-        if result.tracked and self.features is not None and not self.features.empty:
-            self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
+        outcome = self.direct.initialize(frame, result)
+        if outcome is not None and self.features is not None:
+            if not self.features.empty:
+                self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
+            self._map_features(result, initialization=outcome)
         return None
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 3
@@ -296,15 +298,18 @@ class Odometry:
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
 
-    def _map_features(self, result: FrameResult) -> None:
+    def _map_features(self, result: FrameResult, initialization=None) -> None:
         """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization
-        both of the initializer's keyframes), at its direct pose."""
+        both of the initializer's keyframes, and the initializer's feature tracks their first points), at its
+        direct pose."""
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
         for keyframe in self.direct.keyframes:
             if keyframe.frame_index in self.features.map.keyframes:
                 continue
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
+            if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
+                report.tracked_points = self._add_initial_tracks(initialization)
             result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
             _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, report.as_details())
             for culled in report.culled_keyframes:
@@ -312,6 +317,17 @@ class Odometry:
             if keyframe.frame_index == result.frame_index and len(report.new_matches):
                 result.matches_2d = report.new_matches
                 result.matches_inlier = None
+
+    def _add_initial_tracks(self, initialization) -> int:
+        """The initializer's feature tracks (its first points) between its two keyframes join the feature map."""
+        if initialization.tracks_second is None:
+            return 0
+        first = self.direct.keyframes[0]
+        count = len(initialization.tracks_second)
+        uv, inverse_depths = initialization.points_uv[:count], initialization.inverse_depths[:count]
+        points_world = transform_points(first.T_world_cam, self.camera.unproject(uv) / inverse_depths[:, None])
+        return self.features.add_initial_tracks(first.frame_index, initialization.second_frame_index, uv,
+                                                initialization.tracks_second, points_world)
 
     def _set_matches(self, result: FrameResult, outcome, reference: Keyframe) -> None:
         """A recovery's matches for the viewers: from where each matched map point was in the last direct

@@ -27,6 +27,9 @@ class InitializationResult:
     inverse_depths: np.ndarray  # (N,) inverse depths in the first keyframe, scaled so their mean is 1 (DSO)
     inverse_depth_variances: np.ndarray | None = None  # (N,), where the initializer estimates them
     details: dict[str, Any] = field(default_factory=dict)  # model chosen, scores, counts: for the event
+    # Where an initializer tracked features: the first K points are features, and these are their pixels in the
+    # second keyframe (K, 2). The feature map starts from them (FDMO part 1); None for DSO's coarse initializer.
+    tracks_second: np.ndarray | None = None
 
 
 class Initializer(Protocol):

@@ -124,6 +124,11 @@ class FeatureMap:
         self.points.alive[orphans[counts < 2]] = False
         self._forget_dead()
 
+    def reindex(self, keyframe: FeatureKeyframe) -> None:
+        """The inverted index learns a keyframe's new bag of words (after features were added to it)."""
+        self.index.remove(keyframe.frame_index)
+        self.index.add(keyframe.frame_index, keyframe.bow)
+
     def newest(self) -> FeatureKeyframe | None:
         return next(reversed(self.keyframes.values())) if self.keyframes else None
 

@@ -42,6 +42,11 @@ class FeatureOdometry:
         return self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
                                         set(window_poses))
 
+    def add_initial_tracks(self, first: int, second: int, uv_first: np.ndarray, uv_second: np.ndarray,
+                           points_world: np.ndarray) -> int:
+        """The feature initializer's tracks and their triangulated points start the map (FDMO part 1)."""
+        return self.mapper.add_tracked_points(self.map, first, second, uv_first, uv_second, points_world)
+
     def recover(self, image: np.ndarray, last_keyframe: int | None) -> RecoveryOutcome:
         return self.relocalizer.recover(self.map, image, last_keyframe)
 

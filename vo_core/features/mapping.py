@@ -24,7 +24,7 @@ import numpy as np
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import NO_POINT, FeatureKeyframe, FeatureMap, project_points
 from vo_core.features.matcher import epipole_in_b, fundamental_matrix, search_by_projection, search_epipolar
-from vo_core.features.orb import OrbExtractor, level_scales, level_sigma2s
+from vo_core.features.orb import Features, OrbExtractor, level_scales, level_sigma2s
 from vo_core.features.vocabulary import Vocabulary
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
@@ -43,6 +43,7 @@ class MappingReport:
     new_points: int = 0  # triangulated with the local keyframes
     refused_baselines: int = 0  # local keyframes too close for triangulation (FDMO 4.4)
     fused_observations: int = 0  # new points found in the other local keyframes too
+    tracked_points: int = 0  # points the initializer tracked into this keyframe (the map's first keyframes)
     outlier_observations: int = 0  # removed by the structure-only adjustment
     culled_points: int = 0  # FDMO 4.4's 4-of-7 rule and points left without views
     culled_keyframes: list[int] = field(default_factory=list)
@@ -54,6 +55,7 @@ class MappingReport:
             "keyframe": self.frame_index, "features": self.features, "local_keyframes": self.local_keyframes,
             "matched_points": self.matched_points, "new_points": self.new_points,
             "refused_baselines": self.refused_baselines, "fused_observations": self.fused_observations,
+            "tracked_points": self.tracked_points,
             "outlier_observations": self.outlier_observations,
             "culled_points": self.culled_points, "culled_keyframes": self.culled_keyframes, "ms": round(self.ms, 1),
         }
@@ -230,6 +232,28 @@ class FeatureMapper:
         points, _ = triangulate(self.camera, T_world_a, uv_a, T_world_b, uv_b,
                                 max_reprojection_px=np.inf, min_depth=-np.inf)
         return points
+
+    def add_tracked_points(self, feature_map: FeatureMap, frame_a: int, frame_b: int, uv_a: np.ndarray,
+                           uv_b: np.ndarray, points_world: np.ndarray) -> int:
+        """Points tracked between two keyframes by other means and triangulated (the feature initializer's KLT
+        tracks) join the map as features of both keyframes, described by ORB where the tracks are; returns how
+        many."""
+        a, b = feature_map.keyframes[frame_a], feature_map.keyframes[frame_b]
+        if a.image is None or b.image is None or len(points_world) == 0:
+            return 0
+        features_a, rows_a = self.extractor.describe(a.image, uv_a)
+        features_b, rows_b = self.extractor.describe(b.image, uv_b)
+        rows, in_a, in_b = np.intersect1d(rows_a, rows_b, return_indices=True)
+        features_a, features_b = features_a.subset(in_a), features_b.subset(in_b)
+        distance = np.linalg.norm(points_world[rows] - b.centre, axis=1)
+        ids = feature_map.points.add(points_world[rows], features_b.descriptors, b.keyframe_id, distance,
+                                     np.zeros(len(rows), np.int64))
+        for keyframe, features in ((a, features_a), (b, features_b)):
+            keyframe.features = Features.concatenate([keyframe.features, features])
+            keyframe.point_ids = np.concatenate([keyframe.point_ids, ids])
+            keyframe.bow, keyframe.nodes = self.vocabulary.transform(keyframe.features.descriptors)
+            feature_map.reindex(keyframe)
+        return len(rows)
 
     # ------------------------------------------------------------------------------------ adjustment
 

@@ -173,7 +173,7 @@ class OrbExtractor:
                 angle.append(self._orientation(level_image, corners))
         if not xy:
             return Features.empty()
-        return self._describe(gray, *(np.concatenate(part) for part in (xy, level, angle, response)))
+        return self._describe(gray, *(np.concatenate(part) for part in (xy, level, angle, response)))[0]
 
     def pyramid(self, gray: np.ndarray) -> list[np.ndarray]:
         """Level l is level l - 1 resized to round(size / s^l) (ORB-SLAM2 ComputePyramid, bilinear)."""
@@ -280,9 +280,29 @@ class OrbExtractor:
 
     # ---------------------------------------------------------------------------- descriptors
 
+    def describe(self, image: np.ndarray, uv: np.ndarray) -> tuple[Features, np.ndarray]:
+        """ORB features at given level-0 pixels (points tracked by other means: the feature initializer's KLT
+        tracks): orientation and descriptor at the nearest pixel, ``uv`` kept as given. Returns the features of
+        the points far enough from the border to be described, and their rows in ``uv``."""
+        gray = _gray_uint8(image)
+        height, width = gray.shape
+        xy = np.rint(np.asarray(uv, float).reshape(-1, 2)).astype(int)
+        inside = ((xy >= self.border) & (xy < np.array([width, height]) - self.border)).all(axis=1)
+        rows = np.flatnonzero(inside)
+        if len(rows) == 0:
+            return Features.empty(), rows
+        xy = xy[rows]
+        features, described = self._describe(
+            gray, xy, np.zeros(len(rows), int), self._orientation(gray, xy), np.zeros(len(rows), np.float32)
+        )
+        rows = rows[described]
+        features.uv = np.asarray(uv, float).reshape(-1, 2)[rows]
+        return features, rows
+
     def _describe(
         self, gray: np.ndarray, xy: np.ndarray, level: np.ndarray, angle: np.ndarray, response: np.ndarray
-    ) -> Features:
+    ) -> tuple[Features, np.ndarray]:
+        """The features OpenCV could describe, and which of the given corners they are."""
         scale = self.scales[level][:, None]
         # OpenCV finds a keypoint's level pixel as round(pt / s^l): hand it ORB-SLAM2's x * s^l.
         pt = (xy * scale).tolist()
@@ -295,15 +315,16 @@ class OrbExtractor:
         ]
         described, descriptors = self._orb.compute(gray, keypoints)
         if descriptors is None or not described:
-            return Features.empty()
+            return Features.empty(), np.zeros(0, int)
         order = np.array([k.class_id for k in described], dtype=int)  # OpenCV may drop or reorder keypoints
-        return Features(
+        features = Features(
             uv=(xy[order] + 0.5) * scale[order] - 0.5,
             level=level[order].astype(int),
             angle=angle[order],
             response=response[order].astype(np.float32),
             descriptors=np.ascontiguousarray(descriptors, dtype=np.uint8),
         )
+        return features, order
 
 
 # -------------------------------------------------------------------------------------------- quadtree

@@ -56,9 +56,11 @@ class InitialMap:
     depths: InverseDepths
     is_feature: np.ndarray  # (N,) bool
     poses_world_cam: np.ndarray  # (F, 4, 4), the reference's the identity
+    uv_last: np.ndarray  # (N, 2) where the features' tracks end, in the last frame (NaN for the other points)
 
     def subset(self, keep: np.ndarray) -> "InitialMap":
-        return InitialMap(self.uv[keep], self.depths.subset(keep), self.is_feature[keep], self.poses_world_cam)
+        return InitialMap(self.uv[keep], self.depths.subset(keep), self.is_feature[keep], self.poses_world_cam,
+                          self.uv_last[keep])
 
     def normalized(self) -> "InitialMap":
         """Rescaled so the mean inverse depth is 1 (DSO initializeFromInitializer); translations scale with it."""
@@ -66,7 +68,7 @@ class InitialMap:
         poses = self.poses_world_cam.copy()
         poses[:, :3, 3] *= factor
         depths = InverseDepths(self.depths.mean / factor, self.depths.variance / factor**2, self.depths.updates)
-        return InitialMap(self.uv, depths, self.is_feature, poses)
+        return InitialMap(self.uv, depths, self.is_feature, poses, self.uv_last)
 
 
 class FeatureInitializer:
@@ -152,7 +154,9 @@ class FeatureInitializer:
         idepth_features = 1.0 / estimate.points[estimate.keep, 2]
         uv, depths = self._with_selected_pixels(uv_features, idepth_features, estimate.poses_world_cam)
         is_feature = np.arange(len(uv)) < len(uv_features)
-        initial = InitialMap(uv, depths, is_feature, estimate.poses_world_cam).normalized()
+        uv_last = np.full(uv.shape, np.nan)
+        uv_last[is_feature] = observations[-1][estimate.keep]
+        initial = InitialMap(uv, depths, is_feature, estimate.poses_world_cam, uv_last).normalized()
         refined, refine_details = self._refine_photometrically(initial, tracks.frame_indices)
         ba_details.update(refine_details)
         if len(refined.uv) < self.config.two_view.min_triangulated:
@@ -167,6 +171,7 @@ class FeatureInitializer:
         return InitializationResult(
             tracks.frame_indices[0], tracks.frame_indices[-1], final.poses_world_cam[-1], final.uv, final.depths.mean,
             final.depths.variance, details={**model_details, **ba_details, "frames": tracks.num_frames},
+            tracks_second=final.uv_last[final.is_feature],
         )
 
     def _refine_photometrically(self, initial: InitialMap, frame_indices: list[int]) -> tuple[InitialMap, dict]:
@@ -194,7 +199,7 @@ class FeatureInitializer:
         )
         kept = current.subset(adjusted.kept)
         depths = replace(kept.depths, mean=adjusted.inverse_depths)
-        return InitialMap(kept.uv, depths, kept.is_feature, adjusted.poses_world_cam), adjusted.report
+        return replace(kept, depths=depths, poses_world_cam=adjusted.poses_world_cam), adjusted.report
 
     def _with_selected_pixels(
         self, uv_features: np.ndarray, idepth_features: np.ndarray, poses_world_cam: np.ndarray
