@@ -58,7 +58,7 @@ def test_triangulation_of_nothing():
     assert points.shape == (0, 3) and valid.shape == (0,)
 
 
-@pytest.mark.parametrize("solver", ["epnp", "p3p"])
+@pytest.mark.parametrize("solver", ["epnp", "p3p", "usac"])
 def test_pnp_ransac_finds_the_pose_among_40_percent_wrong_matches(solver):
     rng = np.random.default_rng(1)
     points = points_in_view(rng, 120)

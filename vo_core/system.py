@@ -180,16 +180,8 @@ class Odometry:
                  result: FrameResult) -> Keyframe | None:
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index)
         result.timings_ms["recovery"] = outcome.ms
-        if judgement.verdict is Verdict.SUSPECT:
-            check = {**judgement.details(tracking), **outcome.details()}
-            if not outcome.succeeded:  # nothing to check against: DSO would keep it, so do we (and say so)
-                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
-                return self.direct.accept(frame, tracking, result)
-            explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
-            if explained >= self.config.fdmo.agreement:
-                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True, "explained": round(explained, 3)})
-                return self.direct.accept(frame, tracking, result)
-            judgement.reason += f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
+        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
+            return self.direct.accept(frame, tracking, result)
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
@@ -200,6 +192,26 @@ class Odometry:
         _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
         self._set_matches(result, outcome, tracking.reference)
         return self._continue_from(frame, outcome, tracking.reference, result)
+
+    def _suspect_stands(self, tracking: DirectTracking, judgement: Judgement, outcome, result: FrameResult) -> bool:
+        """Whether a suspect direct pose is kept: when the feature map finds the frame and agrees with it, or when
+        the frame has too few features to say anything (the direct estimate is then all there is: FDMO's point).
+        Otherwise the judgement gets the reason why it is not."""
+        check = {**judgement.details(tracking), **outcome.details()}
+        if outcome.succeeded:
+            explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
+            if explained >= self.config.fdmo.agreement:
+                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True, "explained": round(explained, 3)})
+                return True
+            judgement.reason += f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
+            return False
+        if outcome.feature_deprived:
+            _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
+            return True
+        # A textured view the feature map does not recognize is not one the direct map holds either: the direct
+        # alignment against that map converged somewhere, not to the camera.
+        judgement.reason += "; the feature map does not recognize this textured view"
+        return False
 
     def _continue_from(self, frame: DirectFrame, outcome, reference: Keyframe | None,
                        result: FrameResult) -> Keyframe | None:

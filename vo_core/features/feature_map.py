@@ -7,9 +7,10 @@ these arrays are the only record of observations, so the covisibility graph (Str
 per pair of keyframes that share points, weighted by how many) is computed from them when asked and is
 always up to date, however points and keyframes come and go.
 
-Map points live in flat arrays (position, representative descriptor, the keyframe that created them, the
-distance and pyramid level they were seen at), indexed by point id; a removed point keeps its row, marked
-dead, so that ids stay valid.
+Map points live in flat arrays (position, viewing direction, representative descriptor, the keyframe that created
+them, the distance and pyramid level they were seen at), indexed by point id; a removed point keeps its row,
+marked dead, until most rows are dead and the map compacts itself: point ids are valid from one mapping step to
+the next, not forever.
 """
 
 from __future__ import annotations
@@ -26,6 +27,11 @@ from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
 
 NO_POINT = -1
+# Dead point rows are dropped once they are more than half of at least this many (ours: ids stay stable in
+# between, and compaction then costs one pass over the keyframes every few hundred keyframes).
+MIN_ROWS_TO_COMPACT = 4096
+MIN_VIEWING_COSINE = 0.5  # ORB-SLAM2 MapPoint/Frame: mfViewingCosLimit = 0.5 (60 degrees)
+MAX_DEAD_SHARE = 0.5
 
 
 @dataclass
@@ -56,33 +62,70 @@ class FeatureKeyframe:
 
 
 class MapPoints:
-    """Struct-of-arrays storage of the map points; ids are row numbers and stay valid after removal."""
+    """Struct-of-arrays storage of the map points; ids are row numbers, valid until the map compacts itself.
 
-    def __init__(self, descriptor_bytes: int):
-        self.position = np.zeros((0, 3))
-        self.descriptor = np.zeros((0, descriptor_bytes), np.uint8)
-        self.first_keyframe = np.zeros(0, np.int64)  # keyframe_id of the keyframe that created the point
-        self.reference_distance = np.zeros(0)  # camera distance at creation ...
-        self.reference_level = np.zeros(0, np.int64)  # ... and the level it was matched at (scale prediction)
-        self.alive = np.zeros(0, bool)
+    Rows live in arrays of doubling capacity (appending a keyframe's points costs no copy of the map); the
+    attributes are views of the used rows."""
+
+    COLUMNS = {  # name -> (shape of a row, dtype)
+        "position": ((3,), np.float64),
+        "normal": ((3,), np.float64),  # mean viewing direction, from the observing cameras to the point
+        "descriptor": ((32,), np.uint8),  # the representative descriptor (ORB-SLAM2 distinctive descriptor)
+        "first_keyframe": ((), np.int64),  # keyframe_id of the keyframe that created the point
+        "reference_distance": ((), np.float64),  # camera distance at creation ...
+        "reference_level": ((), np.int64),  # ... and the level it was matched at (scale prediction)
+        "alive": ((), bool),
+    }
+
+    def __init__(self):
+        self._count = 0
+        self._storage = {name: np.zeros((0, *shape), dtype) for name, (shape, dtype) in self.COLUMNS.items()}
 
     def __len__(self) -> int:
-        return len(self.alive)
+        return self._count
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        storage = self.__dict__.get("_storage")
+        if storage is None or name not in storage:
+            raise AttributeError(name)
+        return storage[name][: self._count]
 
     @property
     def num_alive(self) -> int:
         return int(self.alive.sum())
 
-    def add(self, position, descriptor, first_keyframe: int, reference_distance, reference_level) -> np.ndarray:
-        start = len(self)
+    def add(self, position, descriptor, first_keyframe: int, reference_distance, reference_level,
+            normal=None) -> np.ndarray:
+        """New rows; ``normal`` defaults to the direction from the origin of ``reference_distance``'s camera,
+        which the caller gives when it knows it (the creating keyframe's viewing direction)."""
         count = len(position)
-        self.position = np.concatenate([self.position, position])
-        self.descriptor = np.concatenate([self.descriptor, descriptor])
-        self.first_keyframe = np.concatenate([self.first_keyframe, np.full(count, first_keyframe, np.int64)])
-        self.reference_distance = np.concatenate([self.reference_distance, reference_distance])
-        self.reference_level = np.concatenate([self.reference_level, np.asarray(reference_level, np.int64)])
-        self.alive = np.concatenate([self.alive, np.ones(count, bool)])
-        return np.arange(start, start + count)
+        self._reserve(self._count + count)
+        rows = slice(self._count, self._count + count)
+        values = {
+            "position": position, "descriptor": descriptor, "first_keyframe": first_keyframe,
+            "reference_distance": reference_distance, "reference_level": reference_level, "alive": True,
+            "normal": np.zeros((count, 3)) if normal is None else normal,
+        }
+        for name, value in values.items():
+            self._storage[name][rows] = value
+        self._count += count
+        return np.arange(rows.start, rows.stop)
+
+    def _reserve(self, needed: int) -> None:
+        capacity = len(self._storage["alive"])
+        if needed <= capacity:
+            return
+        capacity = max(needed, 2 * capacity, 1024)
+        for name, column in self._storage.items():
+            grown = np.zeros((capacity, *column.shape[1:]), column.dtype)
+            grown[: self._count] = column[: self._count]
+            self._storage[name] = grown
+
+    def keep_only(self, rows: np.ndarray) -> None:
+        """Compact the storage to ``rows`` (in order): the new id of row rows[i] is i."""
+        for name, column in self._storage.items():
+            self._storage[name] = column[rows].copy()
+        self._count = len(rows)
 
 
 @dataclass
@@ -98,9 +141,9 @@ class Observations:
 
 
 class FeatureMap:
-    def __init__(self, descriptor_bytes: int = 32):
+    def __init__(self):
         self.keyframes: dict[int, FeatureKeyframe] = {}  # frame index -> keyframe, in order of creation
-        self.points = MapPoints(descriptor_bytes)
+        self.points = MapPoints()
         self.index = InvertedIndex()
         self.next_keyframe_id = 0
 
@@ -199,6 +242,19 @@ class FeatureMap:
         ids = ids[ids >= 0]
         return ids[self.points.alive[ids]]
 
+    def update_normals(self, point_ids: np.ndarray) -> None:
+        """Each point's viewing direction: the mean of the unit rays from the keyframes that observe it to the
+        point (ORB-SLAM2 MapPoint::UpdateNormalAndDepth), for the visibility test of ``project_points``."""
+        table = self.observations()
+        wanted = np.isin(table.point, point_ids)
+        centres = np.array([self.keyframes[int(k)].centre for k in table.keyframe[wanted]]).reshape(-1, 3)
+        rays = self.points.position[table.point[wanted]] - centres
+        rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+        sums = np.zeros((len(self.points), 3))
+        np.add.at(sums, table.point[wanted], rays)
+        norms = np.linalg.norm(sums[point_ids], axis=1, keepdims=True)
+        self.points.normal[point_ids] = np.where(norms > 0, sums[point_ids] / np.maximum(norms, 1e-12), 0.0)
+
     def remove_points(self, point_ids: np.ndarray) -> None:
         self.points.alive[np.asarray(point_ids, np.int64)] = False
         self._forget_dead()
@@ -210,11 +266,23 @@ class FeatureMap:
             self.keyframes[int(frame_index)].point_ids[feature_of[mine]] = NO_POINT
 
     def _forget_dead(self) -> None:
-        """No keyframe keeps an observation of a dead point."""
+        """No keyframe keeps an observation of a dead point; once most rows are dead, they are dropped (so a
+        long run's storage follows the live map, which culling keeps bounded) and the ids renumbered."""
         dead = ~self.points.alive
         for keyframe in self.keyframes.values():
             observed = keyframe.observed()
             keyframe.point_ids[observed[dead[keyframe.point_ids[observed]]]] = NO_POINT
+        if len(self.points) >= MIN_ROWS_TO_COMPACT and dead.mean() > MAX_DEAD_SHARE:
+            self._compact()
+
+    def _compact(self) -> None:
+        live = np.flatnonzero(self.points.alive)
+        new_id = np.full(len(self.points), NO_POINT, np.int64)
+        new_id[live] = np.arange(len(live))
+        self.points.keep_only(live)
+        for keyframe in self.keyframes.values():
+            observed = keyframe.observed()
+            keyframe.point_ids[observed] = new_id[keyframe.point_ids[observed]]
 
     def representative_descriptors(self, point_ids: np.ndarray) -> None:
         """ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors: each point's descriptor becomes the observation
@@ -265,6 +333,12 @@ def project_points(points: MapPoints, point_ids: np.ndarray, T_world_cam: np.nda
     level = np.round(points.reference_level[point_ids] + shift)
     top = orb.num_levels - 1
     in_pyramid = np.isfinite(level) & (level >= -1) & (level <= top + 1)
-    visible = front & camera.in_image(uv) & in_pyramid
+    # Seen from more than 60 degrees off its mean viewing direction, a point's patch has changed too much to be
+    # matched, and is likely on the far side of its object (ORB-SLAM2 isInFrustum: viewCos < 0.5). A point
+    # without a direction yet (all zeros) passes.
+    rays = points.position[point_ids] - T_world_cam[:3, 3]
+    cosine = np.sum(rays * points.normal[point_ids], axis=1) / np.maximum(np.linalg.norm(rays, axis=1), 1e-12)
+    facing = (cosine >= MIN_VIEWING_COSINE) | ~points.normal[point_ids].any(axis=1)
+    visible = front & camera.in_image(uv) & in_pyramid & facing
     level = np.clip(np.nan_to_num(level[visible]), 0, top).astype(np.int64)
     return Projection(point_ids[visible], uv[visible], level, distance[visible])

@@ -279,6 +279,7 @@ class FeatureMapper:
         outliers = ~refined.inlier
         feature_map.remove_observations(keyframe_of[outliers], feature_of[outliers])
         feature_map.remove_points(point_ids[~refined.in_front])
+        feature_map.update_normals(point_ids[refined.in_front])
         return int(outliers.sum())
 
     # ------------------------------------------------------------------------------------ maintenance

