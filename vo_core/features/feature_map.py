@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_core.features.config import OrbConfig
-from vo_core.features.matcher import hamming
+from vo_core.features.matcher import hamming_within
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector, InvertedIndex
 from vo_core.geometry.camera import PinholeCamera
@@ -285,26 +285,36 @@ class FeatureMap:
             keyframe.point_ids[observed] = new_id[keyframe.point_ids[observed]]
 
     def representative_descriptors(self, point_ids: np.ndarray) -> None:
-        """ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors: each point's descriptor becomes the observation
-        with the least median Hamming distance to its other observations."""
-        point_ids = np.unique(np.asarray(point_ids, np.int64))
-        if len(point_ids) == 0:
-            return
+        """ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors: each point's descriptor becomes the one of its
+        observations with the least median Hamming distance to the others. All points at once: their
+        observations' descriptors padded into a (points, observations, 32) block, the distances of every pair
+        within a point from it, invalid slots pushed to the end of each sorted row."""
         table = self.observations()
         wanted = np.isin(table.point, point_ids)
         order = np.argsort(table.point[wanted], kind="stable")
         points = table.point[wanted][order]
-        descriptors = np.stack([
-            self.keyframes[int(k)].features.descriptors[f]
-            for k, f in zip(table.keyframe[wanted][order], table.feature[wanted][order])
-        ]) if len(points) else np.zeros((0, self.points.descriptor.shape[1]), np.uint8)
-        starts = np.flatnonzero(np.r_[True, points[1:] != points[:-1]]) if len(points) else np.zeros(0, int)
-        ends = np.r_[starts[1:], len(points)]
-        for start, end in zip(starts, ends):
-            group = descriptors[start:end]
-            if len(group) > 2:
-                best = int(np.argmin(np.median(hamming(group, group), axis=1)))
-                self.points.descriptor[points[start]] = group[best]
+        if len(points) == 0:
+            return
+        descriptors = self.descriptors_of(table.keyframe[wanted][order], table.feature[wanted][order])
+        unique, start, count = np.unique(points, return_index=True, return_counts=True)
+        slot = np.arange(len(points)) - np.repeat(start, count)
+        block = np.zeros((len(unique), count.max(), descriptors.shape[1]), np.uint8)
+        block[np.repeat(np.arange(len(unique)), count), slot] = descriptors
+        valid = np.arange(count.max())[None, :] < count[:, None]
+        distance = hamming_within(block).astype(float)
+        distance[~(valid[:, :, None] & valid[:, None, :])] = np.inf
+        middle = np.broadcast_to(((count - 1) // 2)[:, None, None], (len(unique), count.max(), 1))
+        median = np.take_along_axis(np.sort(distance, axis=2), middle, axis=2)[:, :, 0]
+        best = np.argmin(np.where(valid, median, np.inf), axis=1)
+        self.points.descriptor[unique] = block[np.arange(len(unique)), best]
+
+    def descriptors_of(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> np.ndarray:
+        """The ORB descriptor (L, 32) of each observation (keyframe, feature)."""
+        descriptors = np.zeros((len(feature_of), self.points.descriptor.shape[1]), np.uint8)
+        for frame_index in np.unique(keyframe_of):
+            mine = keyframe_of == frame_index
+            descriptors[mine] = self.keyframes[int(frame_index)].features.descriptors[feature_of[mine]]
+        return descriptors
 
 
 @dataclass

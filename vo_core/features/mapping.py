@@ -9,6 +9,7 @@
     triangulate where baseline / depth >= 0.02              (cheirality, reprojection, parallax, scale checks)
     find the new points in the other local keyframes        (more views for the adjustment: ORB-SLAM2's fusion)
     structure-only bundle adjustment of the local points    (poses fixed: they are the direct system's)
+    each point seen by the new keyframe takes its most distinctive descriptor among its views
     cull points not found in 4 of the next 7 keyframes, and redundant keyframes the direct window has left
 
 Poses are never estimated here: FDMO keeps one pose per keyframe, the direct one.
@@ -92,6 +93,7 @@ class FeatureMapper:
         report.new_points = len(new_points)
         report.fused_observations = self.fuse(feature_map, new_points, local)
         report.outlier_observations = self.refine_structure(feature_map, [keyframe, *local])
+        feature_map.representative_descriptors(keyframe.point_ids[keyframe.point_ids >= 0])
         report.culled_points = self.cull_points(feature_map)
         self.leave_direct_window(feature_map, direct_window)
         report.culled_keyframes = self.cull_keyframes(feature_map)

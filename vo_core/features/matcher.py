@@ -79,6 +79,12 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def hamming_within(groups: np.ndarray) -> np.ndarray:
+    """(G, M, M) Hamming distances between the M descriptors of each of G groups ((G, M, 32) uint8)."""
+    words = np.ascontiguousarray(groups, dtype=np.uint8).view(np.uint64)  # (G, M, 4)
+    return _popcount_words(words[:, :, None, :] ^ words[:, None, :, :])
+
+
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(N,) int32 Hamming distances between row i of ``a`` and row i of ``b`` (both (N, 32))."""
     return _popcount_words(_words(a) ^ _words(b))
@@ -360,6 +366,7 @@ __all__ = [
     "fundamental_matrix",
     "hamming",
     "hamming_rows",
+    "hamming_within",
     "match_by_bow",
     "orientation_consistent",
     "search_by_projection",
