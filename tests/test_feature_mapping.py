@@ -153,3 +153,22 @@ def test_poses_follow_the_direct_keyframes(smooth_map):
     moved[:3, 3] += 0.01
     feature_map.sync_poses({some: moved, 10_000: np.eye(4)})  # unknown keyframes are ignored
     np.testing.assert_array_equal(feature_map.keyframes[some].T_world_cam, moved)
+
+
+def test_compaction_keeps_every_observation_on_its_point(monkeypatch):
+    import vo_core.features.feature_map as feature_map_module
+
+    feature_map, _ = grow(FeatureConfig(), [SEQUENCE[i] for i in range(0, 24, KEYFRAME_STEP)])
+    table = feature_map.observations()
+    doomed = np.unique(table.point)[::2]  # half of the observed points die
+    feature_map.remove_points(doomed)
+    before = {(k.frame_index, f): feature_map.points.position[k.point_ids[f]].copy()
+              for k in feature_map.keyframes.values() for f in k.observed()}
+    rows_before, alive = len(feature_map.points), feature_map.points.num_alive
+    monkeypatch.setattr(feature_map_module, "MIN_ROWS_TO_COMPACT", 10)
+    feature_map.compact()
+    assert len(feature_map.points) == alive < rows_before and feature_map.points.alive.all()
+    after = {(k.frame_index, f): feature_map.points.position[k.point_ids[f]]
+             for k in feature_map.keyframes.values() for f in k.observed()}
+    assert before.keys() == after.keys()
+    assert all(np.array_equal(before[key], after[key]) for key in before)

@@ -266,16 +266,18 @@ class FeatureMap:
             self.keyframes[int(frame_index)].point_ids[feature_of[mine]] = NO_POINT
 
     def _forget_dead(self) -> None:
-        """No keyframe keeps an observation of a dead point; once most rows are dead, they are dropped (so a
-        long run's storage follows the live map, which culling keeps bounded) and the ids renumbered."""
+        """No keyframe keeps an observation of a dead point."""
         dead = ~self.points.alive
         for keyframe in self.keyframes.values():
             observed = keyframe.observed()
             keyframe.point_ids[observed[dead[keyframe.point_ids[observed]]]] = NO_POINT
-        if len(self.points) >= MIN_ROWS_TO_COMPACT and dead.mean() > MAX_DEAD_SHARE:
-            self._compact()
 
-    def _compact(self) -> None:
+    def compact(self) -> None:
+        """Once most rows are dead, drop them and renumber the points, so that a long run's storage follows the
+        live map (which culling keeps bounded). Point ids held elsewhere are invalid afterwards: the mapper calls
+        this at the end of a keyframe, nothing holds ids across keyframes."""
+        if len(self.points) < MIN_ROWS_TO_COMPACT or self.points.alive.mean() >= 1.0 - MAX_DEAD_SHARE:
+            return
         live = np.flatnonzero(self.points.alive)
         new_id = np.full(len(self.points), NO_POINT, np.int64)
         new_id[live] = np.arange(len(live))

@@ -97,6 +97,7 @@ class FeatureMapper:
         report.culled_points = self.cull_points(feature_map)
         self.leave_direct_window(feature_map, direct_window)
         report.culled_keyframes = self.cull_keyframes(feature_map)
+        feature_map.compact()
         report.ms = (time.perf_counter() - start) * 1000.0
         return report
 
