@@ -215,27 +215,29 @@ class Odometry:
 
     def _continue_from(self, frame: DirectFrame, outcome, reference: Keyframe | None,
                        result: FrameResult) -> Keyframe | None:
-        """Back to direct from a recovered pose (FDMO 4.2.2): direct alignment from it when the window is still
-        there, else a direct map restarted at it, else feature tracking."""
+        """Back to direct from a recovered pose (FDMO 4.2.2): the pose refined by direct alignment against the
+        window where that converges and agrees with the feature map, then the direct map restarted there with the
+        depths of the feature points in view, so that it goes on at the feature map's scale; feature tracking
+        while too few of them are in view.
+
+        Why restart rather than go on in the old window: after a jump the window shares few points with the new
+        view, and carrying its scale through them drifted it (teddy, 20 frames dropped: 6.6 % against 3 % in the
+        clean run, ATE 0.016 m against 0.0098 m when restarted)."""
+        T_world_cam, refined = outcome.T_world_cam, False
         if reference is not None:
-            tracking = self.direct.track(frame, outcome.T_world_cam)
+            tracking = self.direct.track(frame, T_world_cam)
             result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
-            retrack = judge(tracking, self.config.fdmo.divergence)
-            if retrack.verdict in (Verdict.TRUSTED, Verdict.SUSPECT) and self._agrees(outcome, tracking):
-                result.divergence_ratio = retrack.ratio
-                return self.direct.accept(frame, tracking, result)
-        uv, inverse_depths = self.features.depths_in_view(outcome.pose, outcome.features)
+            refined = tracking.converged and self.features.explained(
+                outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
+            T_world_cam = tracking.T_world_cam if refined else T_world_cam
+        uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam)
         if len(uv) >= self.config.fdmo.min_restart_points:
             _emit(result, EventKind.DIRECT_RESTARTED,
-                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage})
+                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined})
             self.mode = _Mode.DIRECT
-            return self.direct.restart_at(frame, outcome.T_world_cam, uv, inverse_depths, result)
-        self._pose_from_features(outcome.T_world_cam, outcome.pose.num_inliers, result)
+            return self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result)
+        self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
         return None
-
-    def _agrees(self, outcome, tracking: DirectTracking) -> bool:
-        explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
-        return tracking.converged and explained >= self.config.fdmo.agreement
 
     def _track_features(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the

@@ -16,6 +16,7 @@ from vo_core.features.mapping import FeatureMapper, MappingReport
 from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_inverse, transform_points
 
 
 class FeatureOdometry:
@@ -56,16 +57,11 @@ class FeatureOdometry:
     def explained(self, pose: PoseFromMap, T_world_cam: np.ndarray, frame: FrameFeatures) -> float:
         return self.relocalizer.explained(self.map, pose, T_world_cam, frame)
 
-    def depths_in_view(self, pose: PoseFromMap, frame: FrameFeatures) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels and inverse depths of the map points the pose's inliers matched in the frame: where a direct
-        map restarted at this pose gets its first depths (at the feature map's scale). The pixels are the
-        measured features, the depths the points' along their rays."""
-        point_ids, feature_ids = pose.point_ids[pose.inlier], pose.feature_ids[pose.inlier]
-        view = project_points(self.map.points, point_ids, pose.T_world_cam, self.camera, self.config.orb)
-        keep = np.isin(point_ids, view.point_ids)
-        points_cam = np.linalg.solve(pose.T_world_cam, np.c_[self.map.points.position[point_ids[keep]],
-                                                             np.ones(int(keep.sum()))].T).T[:, :3]
-        return frame.features.uv[feature_ids[keep]], 1.0 / points_cam[:, 2]
+    def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched:
+        where a direct map restarted there gets its first depths (at the feature map's scale)."""
+        view = project_points(self.map.points, pose.point_ids[pose.inlier], T_world_cam, self.camera, self.config.orb)
+        return view.uv, 1.0 / transform_points(se3_inverse(T_world_cam), self.map.points.position[view.point_ids])[:, 2]
 
     def points_world(self) -> np.ndarray:
         return self.map.points.position[self.map.points.alive]
