@@ -32,18 +32,29 @@ from vo_core.eval.metrics import evaluate  # noqa: E402
 from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
+# Events counted in a run's line besides the keyframes and tracking failures.
+NOTED_EVENTS = ("initialization_rejected", "scale_jump", "reinitialization", "divergence_detected")
+
 
 def run(folder: Path, overrides: list[str], end: int | None) -> float:
     """One run: prints its line and its stage times; returns its ATE."""
-    config = load_config(None, overrides)
     sequence = open_sequence(folder).cut(end=end)
+    return run_sequence(folder.name, sequence, sequence.ground_truth, overrides)
+
+
+def run_sequence(name: str, sequence, ground_truth, overrides: list[str]) -> float:
+    """One run of frames from ``sequence`` (anything that iterates frames and has a ``camera``)."""
+    config = load_config(None, overrides)
     odometry = Odometry(config, sequence.camera)
     timestamps, poses, init_frame, failures = [], [], None, 0
+    events: dict[str, int] = {}
     stages: dict[bool, dict[str, list[float]]] = {False: {}, True: {}}  # is_keyframe -> stage -> ms
     wall = time.perf_counter()
     for frame in sequence:
         result = odometry.track(frame)
         failures += sum(event.kind.value == "tracking_failed" for event in result.events)
+        for event in result.events:
+            events[event.kind.value] = events.get(event.kind.value, 0) + 1
         if result.T_world_cam is None:
             continue
         if init_frame is None:
@@ -55,20 +66,25 @@ def run(folder: Path, overrides: list[str], end: int | None) -> float:
         poses.append(result.T_world_cam)
     wall = time.perf_counter() - wall
     ate = float("nan")
-    if sequence.ground_truth is not None and len(poses) > 2:
-        ate = evaluate(Trajectory(np.array(timestamps), np.array(poses)), sequence.ground_truth)["ate"]["rmse"]
-    print(f"{folder.name}: ATE {ate:.4f} m; tracked {len(poses)}/{len(sequence)}; initialized at frame {init_frame}; "
-          f"{len(stages[True].get('total', []))} keyframes; {failures} tracking failures; "
-          f"{len(sequence) / wall:.1f} fps overall")
-    for is_keyframe, name in ((False, "tracked-only frames"), (True, "keyframes")):
+    if ground_truth is not None and len(poses) > 2:
+        ate = evaluate(Trajectory(np.array(timestamps), np.array(poses)), ground_truth)["ate"]["rmse"]
+    noted = ", ".join(f"{events[kind]} {kind}" for kind in NOTED_EVENTS if kind in events)
+    print(f"{name}: ATE {ate:.4f} m; tracked {len(poses)}/{len(sequence)}; initialized at frame {init_frame}; "
+          f"{events.get('keyframe_added', 0)} keyframes; {failures} tracking failures; "
+          f"{len(sequence) / wall:.1f} fps overall{'; ' + noted if noted else ''}")
+    for is_keyframe, label in ((False, "tracked-only frames"), (True, "keyframes")):
         by_stage = (f"{stage} {np.mean(ms):.1f}/{np.median(ms):.1f}" for stage, ms in stages[is_keyframe].items())
-        print(f"  {name}, ms mean/median: " + ", ".join(by_stage))
+        print(f"  {label}, ms mean/median: " + ", ".join(by_stage))
     return ate
 
 
 def run_seeds(folder: Path, overrides: list[str], end: int | None, seeds: list[int]) -> None:
     ates = [run(folder, [*overrides, f"seed={seed}"], end) for seed in seeds]
-    print(f"{folder.name}: ATE over seeds {seeds}: median {np.median(ates):.4f}, min {np.min(ates):.4f}, "
+    print_spread(folder.name, seeds, ates)
+
+
+def print_spread(name: str, seeds: list[int], ates: list[float]) -> None:
+    print(f"{name}: ATE over seeds {seeds}: median {np.median(ates):.4f}, min {np.min(ates):.4f}, "
           f"max {np.max(ates):.4f} m; each {', '.join(f'{ate:.4f}' for ate in ates)}")
 
 

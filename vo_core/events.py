@@ -21,6 +21,7 @@ class EventKind(str, Enum):
     INITIALIZATION_SUCCEEDED = "initialization_succeeded"
     INITIALIZATION_FAILED = "initialization_failed"
     INITIALIZER_MODEL = "initializer_model"  # H or F chosen, with scores
+    INITIALIZATION_REJECTED = "initialization_rejected"  # a start failed its check after the hand-over: discarded
     TRACKING_OK = "tracking_ok"
     TRACKING_FAILED = "tracking_failed"
     DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps, or confirmed
@@ -35,11 +36,13 @@ class EventKind(str, Enum):
     FEATURE_KEYFRAME_ADDED = "feature_keyframe_added"  # FDMO 4.3: the feature map grew at a direct keyframe
     FEATURE_KEYFRAME_CULLED = "feature_keyframe_culled"  # FDMO 4.4: redundant, its direct twin marginalized
     KEYFRAME_MARGINALIZED = "keyframe_marginalized"
+    SCALE_JUMP = "scale_jump"  # the direct map's scale jumped or collapsed at a keyframe
     MAP_POINTS_CULLED = "map_points_culled"
     WINDOW_OPTIMIZED = "window_optimized"
     FRAME_SKIPPED = "frame_skipped"  # unreadable image skipped by the loader
     FRAME_REPEATED = "frame_repeated"  # the same image as the frame before (a stalled camera): no pose
     FRAMES_DROPPED = "frames_dropped"  # dropped on purpose by the player (scripted or live)
+    FRAMES_JUMPED = "frames_jumped"  # the player went on from another frame, back or ahead (scripted or live)
 
 
 @dataclass(frozen=True)
@@ -74,6 +77,9 @@ class FrameResult:
     says which of them the pose accepted (None: all of them).
     ``divergence_ratio`` is RMSE_after / RMSE_before of the direct alignment the system judged (FDMO 4.2.1),
     with ``divergence_threshold`` 1 + epsilon.
+    ``scale_ratio`` and ``mean_inverse_depth`` are set at direct keyframes (the direct map's scale watch): the new
+    keyframe's speed (its translation from the previous keyframe over the time between them) over the median of the
+    recent keyframes' speeds, and the mean inverse depth of the window's active points, in the map's own units.
     """
 
     frame_index: int
@@ -89,6 +95,8 @@ class FrameResult:
     matches_inlier: np.ndarray | None = None  # (K,) bool
     divergence_ratio: float | None = None
     divergence_threshold: float | None = None
+    scale_ratio: float | None = None
+    mean_inverse_depth: float | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
 

@@ -69,6 +69,8 @@ class _Linearization:
 
 
 class CoarseInitializer:
+    name = "coarse"
+
     def __init__(
         self,
         config: InitializerConfig,

@@ -157,12 +157,48 @@ class WindowConfig:
 
 
 @dataclass
+class StartCheckConfig:
+    """The check of a new start over the first window optimizations after the hand-over (start_check.py). DSO has
+    none; ORB-SLAM2 has one (CreateInitialMapMonocular resets a start whose first global bundle adjustment leaves a
+    negative median depth or fewer than 100 tracked points). These thresholds are ours, from the starts measured in
+    BENCHMARKS.md (Initialization that proves itself)."""
+
+    enabled: bool = True
+    window_optimizations: int = 4  # optimizations after the hand-over's own that the start must pass
+    # The first keyframe pair's parallax (baseline x median inverse depth of the initializer's points) may not
+    # change by more than this factor from the hand-over: a right start is refined, a wrong one is rebuilt (right
+    # coarse starts on KITTI change it by up to 2.0x, feature starts by 1.1x).
+    max_parallax_change: float = 3.0
+    # At the last optimization, the energy per residual in view over its lowest since the hand-over (the hand-over's
+    # own excepted: two keyframes fit each other best): a wrong structure explains each new frame worse (a wrong
+    # plane: 2.6x; right starts on the shared folders and the synthetic presets: up to 1.4x).
+    max_energy_growth: float = 2.0
+    min_inlier_ratio: float = 0.5  # at the last optimization: residuals in view that are not outliers
+
+
+@dataclass
+class ScaleWatchConfig:
+    """The scale watch at every keyframe (scale_watch.py; ours: DSO reports nothing). The new keyframe's speed is
+    compared with the median of the recent ones, and the window's mean inverse depth with the recent ones'. Depths
+    change from one keyframe to the next by at most the step (about a tenth of the depth, DSO making keyframes when
+    the optical flow passes a threshold), and a camera that slows down or turns leaves them as they were: a factor
+    of 1.6 in both at once, in opposite directions, is not a motion but the map's scale changing."""
+
+    recent_keyframes: int = 5  # the speeds and depths compared with (DSO's window: setting_minFrames)
+    min_recent: int = 3  # fewer recent keyframes than this: nothing to compare with yet
+    jump_factor: float = 1.6  # geometric mean of the speed's and the depths' change that is a jump
+    min_depth_factor: float = 1.25  # the depths must move by at least this much too (a pure rotation moves none)
+
+
+@dataclass
 class DirectConfig:
     # "features": paper 004's feature-based initializer (vo_core/init/feature_initializer.py, settings in the
-    # config's ``init`` section); "coarse": DSO's coarse one (vo_core/direct/coarse_initializer.py). The default
-    # is "features" (BENCHMARKS.md, Initializers): it starts at frame 3 instead of 7 and started right in 30 of 30
-    # short runs from spread start frames where the coarse one started wrong in 5; over whole runs from frame 0
-    # the coarse one ends 7-20 % more accurate by median ATE.
+    # config's ``init`` section); "coarse": DSO's coarse one (vo_core/direct/coarse_initializer.py); "auto": the
+    # feature one, and the coarse one for the next attempt after a feature start fails its checks (its own
+    # acceptance rules for ``init.max_frames`` frames, or the start check). The default is "features"
+    # (BENCHMARKS.md, Initializers): it starts at frame 3 instead of 7 and started right in 30 of 30 short runs from
+    # spread start frames where the coarse one started wrong in 5; over whole runs from frame 0 the coarse one ends
+    # 7-20 % more accurate by median ATE.
     initializer: str = "features"
     point_density: float = 2000.0  # setting_desiredPointDensity: active points used for tracking
     pyramid: PyramidConfig = field(default_factory=PyramidConfig)
@@ -172,3 +208,5 @@ class DirectConfig:
     immature: ImmatureConfig = field(default_factory=ImmatureConfig)
     coarse_init: InitializerConfig = field(default_factory=InitializerConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
+    start_check: StartCheckConfig = field(default_factory=StartCheckConfig)
+    scale_watch: ScaleWatchConfig = field(default_factory=ScaleWatchConfig)

@@ -4,7 +4,9 @@ vo_core/direct/, the feature-based one in vo_core/init/) and the system hands th
 
 The direct odometry feeds frames until ``track`` returns an ``InitializationResult``; when it has fed
 ``max_frames`` frames without one it starts over from the current frame. ``status`` says, for the events,
-what the latest attempt found (model chosen, tracks kept, why it was rejected).
+what the latest attempt found (model chosen, tracks kept, why it was rejected). A start that the odometry's check
+discards after the hand-over (start_check.py) is an attempt that failed too: the factory is then told which
+initializer failed, so that ``direct.initializer=auto`` can try the other one.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ class InitializationResult:
 
 
 class Initializer(Protocol):
+    name: str  # "features" or "coarse": for the events and the next attempt
     max_frames: int
 
     @property
@@ -45,4 +48,6 @@ class Initializer(Protocol):
     def status(self) -> dict[str, Any]: ...
 
 
-InitializerFactory = Callable[[], Initializer]  # a fresh initializer for every (re)initialization
+# A fresh initializer for every (re)initialization, given the name of the initializer whose attempt just failed
+# (None when the last one succeeded, or at the first).
+InitializerFactory = Callable[[str | None], Initializer]

@@ -16,6 +16,11 @@ converged immature points are activated where the window lacks points, the windo
 the new keyframe selects its own immature points and becomes the tracking reference with all active points
 of the window projected into it (DSO's coarse depth map).
 
+Two watches run at every window optimization: the scale watch (scale_watch.py) reports the map's scale at every
+keyframe and an event when it jumps, and a new start stays on probation (start_check.py) for its first window
+optimizations: a start that fails is discarded with an event saying why, the frame gets no pose, and the
+initializer starts again from it (with ``direct.initializer=auto`` the other initializer).
+
 The initializer is handed in as a factory: the direct half does not know which one runs.
 """
 
@@ -38,7 +43,9 @@ from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid, to_level
-from vo_core.direct.window import WindowOptimizer
+from vo_core.direct.scale_watch import ScaleWatch
+from vo_core.direct.start_check import StartCheck
+from vo_core.direct.window import WindowOptimizer, WindowReport
 from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
@@ -173,7 +180,7 @@ class DirectOdometry:
             config.immature.outlier_sum_component,
         )
         self.make_initializer = make_initializer
-        self.initializer = make_initializer()
+        self.initializer = make_initializer(None)
         self.state = _State.INITIALIZING
         self.keyframes: list[Keyframe] = []  # the window, oldest first
         self.prior = MarginalizationPrior()  # what the keyframes that left the window still say
@@ -185,6 +192,9 @@ class DirectOdometry:
         self.initializer_frames = 0
         self._first_frame: DirectFrame | None = None  # the frame the initializer started from
         self.min_activation_distance = INITIAL_ACTIVATION_DISTANCE
+        self.scale_watch = ScaleWatch(config.scale_watch)
+        self.start_check: StartCheck | None = None  # the current start's check (on probation until it passed)
+        self.start_failure: str | None = None  # why the start on probation fails, set at a window optimization
 
     @property
     def initialized(self) -> bool:
@@ -220,7 +230,7 @@ class DirectOdometry:
             self.initializer.set_first(frame.index, frame.pyramid, frame.exposure)
             self._first_frame = frame
             self.initializer_frames = 0
-            result.events.append(_event(EventKind.INITIALIZATION_STARTED, frame, {"method": self.config.initializer}))
+            result.events.append(_event(EventKind.INITIALIZATION_STARTED, frame, {"method": self.initializer.name}))
             result.timings_ms["initializer"] = _ms_since(start)
             return None
         outcome = self.initializer.track(frame.index, frame.pyramid, frame.exposure)
@@ -229,9 +239,10 @@ class DirectOdometry:
         if outcome is None:
             if self.initializer_frames >= self.initializer.max_frames:
                 # Too long without enough baseline or texture: start over from this frame.
-                details = {**self.initializer.status(), "frames": self.initializer_frames}
+                details = {**self.initializer.status(), "frames": self.initializer_frames,
+                           "method": self.initializer.name}
                 result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
-                self.initializer = self.make_initializer()
+                self.initializer = self.make_initializer(self.initializer.name)
                 return self.initialize(frame, result)
             return None
         self._start_from_initialization(frame, outcome, result)
@@ -288,19 +299,27 @@ class DirectOdometry:
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, best.affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
+        if self.start_failure is not None:
+            self._discard_start(frame, result)
+            return None
         return keyframe
 
     def reinitialize(self, T_world_origin: np.ndarray) -> None:
         """Forget the map and initialize again from the next frame given to ``initialize``; the new map's first
         frame sits at ``T_world_origin`` (the world frame is kept, the scale is the new initialization's)."""
         self.T_world_origin = np.array(T_world_origin, dtype=float)
+        self._forget_map(failed_initializer=None)
+
+    def _forget_map(self, failed_initializer: str | None) -> None:
         self.state = _State.INITIALIZING
         self.keyframes = []
         self.prior = MarginalizationPrior()
         self.history = []
-        self.initializer = self.make_initializer()
+        self.initializer = self.make_initializer(failed_initializer)
         self.first_rmse = -1.0
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        self.start_check, self.start_failure = None, None
+        self.scale_watch.reset()
 
     def restart_at(self, frame: DirectFrame, T_world_cam: np.ndarray, points_uv: np.ndarray,
                    inverse_depths: np.ndarray, result: FrameResult) -> Keyframe:
@@ -318,6 +337,8 @@ class DirectOdometry:
         self.state = _State.TRACKING
         self.first_rmse = -1.0
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        self.scale_watch.reset()  # a new window: nothing to compare its first keyframes with
+        self.start_check, self.start_failure = None, None  # the feature map's points, not an initializer's start
         selection = self.selector.select(frame.pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(frame.pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
@@ -360,13 +381,18 @@ class DirectOdometry:
         T_world_cam = first.T_world_cam @ outcome.T_first_second
         self.history = [_Tracked(first.T_world_cam, np.zeros(2)), _Tracked(T_world_cam, np.zeros(2))]
         self.state = _State.TRACKING
-        self.initializer = self.make_initializer()
+        method = self.initializer.name
+        if self.config.start_check.enabled:
+            self.start_check = StartCheck(self.config.start_check, first.frame_index, frame.index, method)
+        self.initializer = self.make_initializer(None)
+        self.scale_watch.reset()
         result.T_world_cam = T_world_cam
         result.tracked = True
         result.events.append(
             _event(
                 EventKind.INITIALIZATION_SUCCEEDED, frame,
-                {**outcome.details, "first_frame": first.frame_index, "first_T_world_cam": first.T_world_cam.tolist()},
+                {**outcome.details, "method": method, "first_frame": first.frame_index,
+                 "first_T_world_cam": first.T_world_cam.tolist(), "T_first_second": outcome.T_first_second.tolist()},
             )
         )
         self._add_keyframe(frame, T_world_cam, np.zeros(2), result)
@@ -468,6 +494,36 @@ class DirectOdometry:
         result.T_world_cam = newest.T_world_cam.copy()
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
+        self._watch_scale(frame, result)
+        if self.start_check is not None and not self.start_check.passed:
+            self._check_start(report)
+
+    def _watch_scale(self, frame, result: FrameResult) -> None:
+        """The scale watch's reading of the newest keyframe, into the frame's result (and an event on a jump)."""
+        newest, previous = self.keyframes[-1], self.keyframes[-2]
+        step = float(np.linalg.norm(newest.T_world_cam[:3, 3] - previous.T_world_cam[:3, 3]))
+        seconds = max(abs(newest.timestamp - previous.timestamp), 1e-6)  # a sequence played backward counts too
+        idepth = np.concatenate([k.active_idepth for k in self.keyframes])
+        reading = self.scale_watch.observe(step / seconds, float(np.mean(idepth)) if len(idepth) else float("nan"))
+        result.scale_ratio, result.mean_inverse_depth = reading.step_ratio, reading.mean_inverse_depth
+        if reading.jump:
+            result.events.append(_event(EventKind.SCALE_JUMP, frame, {"keyframe": newest.frame_index,
+                                                                       **reading.details()}))
+
+    def _check_start(self, report: WindowReport) -> None:
+        """One more window optimization for the start on probation: it fails (``start_failure`` says why) or,
+        after enough of them, it has proven itself (``start_check.passed``)."""
+        self.start_failure = self.start_check.observe(report, self.keyframes)
+
+    def _discard_start(self, frame: DirectFrame, result: FrameResult) -> None:
+        """A start failed its check: the map goes, the frame gets no pose (it was posed in that map), and the
+        initializer starts again from this frame."""
+        check = self.start_check
+        result.events.append(_event(EventKind.INITIALIZATION_REJECTED, frame,
+                                    {"reason": self.start_failure, **check.details()}))
+        result.T_world_cam, result.tracked, result.is_keyframe, result.points_2d = None, False, False, None
+        self._forget_map(failed_initializer=check.initializer)
+        self.initialize(frame, result)
 
     def _keyframes_to_marginalize(self, new_keyframe: Keyframe) -> list[int]:
         """flagFramesForMarginalization: the frame indices of the keyframes that leave the window once

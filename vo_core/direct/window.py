@@ -67,6 +67,7 @@ class WindowReport:
     energy_after: float
     points: int
     residuals: int
+    outliers: int  # residuals in view beyond the outlier threshold (DSO's setting_outlierTH)
     kept: np.ndarray  # (points,) bool: which of the window's points (host by host, in order) are still active
     ms: float
 
@@ -78,7 +79,7 @@ class WindowReport:
         return {
             "iterations": self.iterations, "energy_before": round(self.energy_before, 1),
             "energy_after": round(self.energy_after, 1), "points": self.points, "residuals": self.residuals,
-            "removed_points": self.removed_points, "ms": round(self.ms, 1),
+            "outliers": self.outliers, "removed_points": self.removed_points, "ms": round(self.ms, 1),
         }
 
 
@@ -121,7 +122,7 @@ class WindowOptimizer:
                 lam *= self.config.lambda_increase
         kept = self._write_back(keyframes, poses, affines, idepth, system)
         return WindowReport(
-            iterations, energy_before, energy, len(idepth), system.residuals, kept,
+            iterations, energy_before, energy, len(idepth), system.residuals, int(system.outliers.sum()), kept,
             (time.perf_counter() - start) * 1000.0,
         )
 

@@ -33,6 +33,9 @@ class GeometricBAConfig:
     max_iterations: int = 20  # Levenberg-Marquardt iterations per adjustment (ours)
     severe_outlier_px: float = 8.0  # 3.2: "severe" outliers, removed and re-adjusted until none (value ours)
     outlier_px: float = 3.0  # 3.2: afterwards "normal" outliers beyond 3 px are removed too
+    # ORB-SLAM2 CreateInitialMapMonocular: a start whose global bundle adjustment leaves fewer than 100 tracked
+    # points is reset ("Wrong initialization").
+    min_points: int = 100
 
 
 @dataclass
@@ -79,9 +82,20 @@ class PhotometricBAConfig:
 
 
 @dataclass
+class ModelChoiceConfig:
+    """How clearly one of the two models must win (ORB-SLAM selects the homography when R_H = S_H / (S_H + S_F)
+    passes 0.40 in ORB_SLAM2's Initializer.cc and 0.45 in the paper, section IV). A ratio between the two is where
+    neither model explains the views clearly better: a general scene seen with little parallax, which a homography
+    fits nearly as well as the epipolar geometry. No model is chosen there; a later frame has more parallax."""
+
+    ambiguous_ratio_h: tuple[float, float] = (0.40, 0.45)
+
+
+@dataclass
 class InitConfig:
     tracks: FeatureTrackConfig = field(default_factory=FeatureTrackConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
+    model_choice: ModelChoiceConfig = field(default_factory=ModelChoiceConfig)
     geometric_ba: GeometricBAConfig = field(default_factory=GeometricBAConfig)
     semi_dense: SemiDenseConfig = field(default_factory=SemiDenseConfig)
     photometric_filter: PhotometricFilterConfig = field(default_factory=PhotometricFilterConfig)

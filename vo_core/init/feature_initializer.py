@@ -3,9 +3,12 @@
 1. Corners in the reference frame, tracked frame to frame by KLT with a forward-backward check (3.1); too
    few surviving tracks give up this reference (the odometry then starts again from its next frame).
 2. From the N-th frame on (N = 4), each frame is tried against the reference: homography and fundamental
-   matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/geometry/two_view.py).
+   matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/geometry/two_view.py), with
+   ORB-SLAM's acceptance rules (1 degree of parallax, 50 well-triangulated points explaining 90 % of the
+   model's inliers, one clearly best decomposition); no model is chosen where neither clearly wins (R_H between
+   ORB-SLAM's two thresholds, 0.40 and 0.45).
 3. Geometric bundle adjustment over every frame of the window with severe- and normal-outlier removal
-   (3.2, vo_core/init/geometric_ba.py).
+   (3.2, vo_core/init/geometric_ba.py); fewer than 100 points left is a wrong start (ORB-SLAM2).
 4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
    and Gaussian fusion, the adjusted feature points around them as prior (3.3,
    vo_core/init/semi_dense_depth.py); the features themselves are handed over too.
@@ -72,6 +75,8 @@ class InitialMap:
 
 
 class FeatureInitializer:
+    name = "features"
+
     def __init__(self, config: InitConfig, direct: DirectConfig, camera: PinholeCamera, seed: int):
         self.config = config
         self.selector = direct.selector
@@ -136,6 +141,11 @@ class FeatureInitializer:
             "model": geometry.model, "score_h": round(scores.score_h, 1), "score_f": round(scores.score_f, 1),
             "ratio_h": round(scores.ratio, 3), "parallax_deg": round(geometry.parallax_deg, 2),
         }
+        low, high = self.config.model_choice.ambiguous_ratio_h
+        if low < scores.ratio <= high:
+            self._reject(f"no clear winner between the models: R_H {scores.ratio:.3f} in ({low}, {high}]",
+                         **model_details)
+            return None
         good = geometry.good
         observations = window[:, good]
         poses = initial_poses(self.camera, observations, geometry.points_first[good], geometry.T_first_second)
@@ -147,7 +157,7 @@ class FeatureInitializer:
             "tracks_kept": window.shape[1], "triangulated": int(good.sum()), "severe_outliers": estimate.severe_removed,
             "outliers": estimate.outliers_removed, "points": kept, "reprojection_rms_px": round(estimate.rms_px, 3),
         }
-        if kept < self.config.two_view.min_triangulated:
+        if kept < self.config.geometric_ba.min_points:
             self._reject(f"{kept} points left after the bundle adjustment", **model_details, **ba_details)
             return None
         uv_features = observations[0][estimate.keep]
