@@ -102,11 +102,18 @@ def test_timestamps_out_of_order_or_duplicated_are_refused(tmp_path, swap, word)
         open_sequence(root)
 
 
-def test_image_list_referring_to_missing_files_is_refused(tmp_path):
+def test_a_listed_image_that_is_missing_is_skipped_and_a_list_of_none_is_refused(tmp_path):
     root = make_tum_rgbd(tmp_path / "seq")
-    victim = sorted((root / "rgb").iterdir())[2]
-    victim.unlink()
-    with pytest.raises(InputError, match=rf"rgb\.txt: refers to 1 missing image\(s\), first .*{victim.name}"):
+    images = sorted((root / "rgb").iterdir())
+    images[2].unlink()
+    frames = list(open_sequence(root))
+    assert [f.image is None for f in frames] == [False, False, True, False]
+    assert frames[2].index == 2 and frames[2].error == f"{images[2]}: no such image file"
+    with pytest.raises(InputError, match=rf"{images[2].name}: no such image file"):
+        list(open_sequence(root, on_bad_image="abort"))
+    for image in images:
+        image.unlink(missing_ok=True)
+    with pytest.raises(InputError, match=r"rgb\.txt: none of the 4 images it lists exists \(first .*png\)"):
         open_sequence(root)
 
 
@@ -251,12 +258,16 @@ def test_kitti_missing_or_malformed_calibration_is_refused(tmp_path):
 # ---------------------------------------------------------------------------------------------------- VAMR
 
 
-def test_vamr_nominal_timestamps_comma_separated_k_and_poses(tmp_path):
-    root = tmp_path / "parking"
-    write_images([root / "images" / f"img_{i:05d}.png" for i in range(3)], 40, 30)
+def make_vamr(root: Path, count: int = 3) -> Path:
+    write_images([root / "images" / f"img_{i:05d}.png" for i in range(count)], 40, 30)
     (root / "K.txt").write_text("331.37, 0,       20\n0,      369.568, 15\n0,      0,       1\n")
-    rows = [f"1 0 0 {0.15 * i:.2f} 0 1 0 0 0 0 1 0 \n" for i in range(3)]
+    rows = [f"1 0 0 {0.15 * i:.2f} 0 1 0 0 0 0 1 0 \n" for i in range(count)]
     (root / "poses.txt").write_text("".join(rows))
+    return root
+
+
+def test_vamr_nominal_timestamps_comma_separated_k_and_poses(tmp_path):
+    root = make_vamr(tmp_path / "parking")
     sequence = open_sequence(root)
     assert sequence.layout == "vamr" and sequence.camera == PinholeCamera(40, 30, 331.37, 369.568, 20, 15)
     np.testing.assert_allclose(sequence.timestamps, [0.0, 0.1, 0.2])
@@ -264,6 +275,17 @@ def test_vamr_nominal_timestamps_comma_separated_k_and_poses(tmp_path):
     (root / "K.txt").write_text("331.37, 0, 20\n0, 369.568\n0, 0, 1\n")
     with pytest.raises(InputError, match=r"K\.txt:2: expected 3 numbers, found 2"):
         open_sequence(root)
+
+
+@pytest.mark.parametrize("make, victim", [(make_kitti, "image_0/000001.png"), (make_vamr, "images/img_00001.png")])
+def test_an_image_missing_from_the_numbering_is_a_frame_skipped_not_a_frame_less(tmp_path, make, victim):
+    root = make(tmp_path / "seq07", count=4)
+    (root / victim).unlink()
+    sequence = open_sequence(root)
+    frames = list(sequence)
+    assert [f.index for f in frames] == [0, 1, 2, 3] and [f.image is None for f in frames] == [False, True, False, False]
+    assert frames[1].error == f"{root / victim}: no such image file"
+    np.testing.assert_allclose(sequence.ground_truth.timestamps, sequence.timestamps)
 
 
 # -------------------------------------------------------------------------------------- image folder, video

@@ -8,6 +8,7 @@ derandomized (the same examples every time) and short, so that the whole file ta
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import cv2
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 from hypothesis import given, settings, strategies as st
+from hypothesis.extra.numpy import arrays
 
 from app.cli import build_parser
 from vo_core.config import load_config
@@ -23,6 +25,7 @@ from vo_core.datasets.calibration import load_camera_file
 from vo_core.datasets.euroc import read_image_list as read_data_csv, read_sensor_yaml
 from vo_core.datasets.tum_rgbd import read_image_list as read_rgb_txt
 from vo_core.errors import InputError
+from vo_core.features.vocabulary import Vocabulary
 from vo_core.trajectory import read_trajectory
 
 FUZZ = settings(max_examples=60, deadline=None, derandomize=True, database=None)
@@ -247,9 +250,52 @@ def test_set_option(key, value, equals):
 
 @FUZZ
 @given(text=st.one_of(lines(st.one_of(NUMBERS, st.just(":")), max_lines=1).map(lambda t: t.replace(" ", "")),
-                      st.text(max_size=10)))
-def test_drop_option(text):
-    args = parses_or_refuses(build_parser().parse_args, ["run", f"--drop={text}"])
+                      st.text(max_size=10)), option=st.sampled_from(["--drop", "--jump"]))
+def test_drop_and_jump_options(text, option):
+    """--drop FRAME:COUNT and --jump FRAME:TARGET."""
+    args = parses_or_refuses(build_parser().parse_args, ["run", f"{option}={text}"])
     if args is not None:
-        (frame, count), = args.drops
-        assert frame >= 0 and count >= 1
+        (frame, second), = args.drops or args.jumps
+        assert frame >= 0 and (second >= 1 if option == "--drop" else second >= 0 and second != frame)
+
+
+# ------------------------------------------------------------------------------------------ vocabulary
+
+# A vocabulary of a root and three words (k 3, L 1), as Vocabulary.save writes it.
+VOCABULARY_ARRAYS = {"format_version": np.int64(1), "kind": np.str_("fdmo-orb-vocabulary"), "branching": np.int64(3),
+                     "depth": np.int64(1), "parents": np.array([-1, 0, 0, 0], np.int32),
+                     "node_descriptors": np.arange(4 * 32, dtype=np.uint8).reshape(4, 32),
+                     "word_weights": np.array([0.5, 1.0, 2.0])}
+ARRAY_DTYPES = st.sampled_from([np.int8, np.int32, np.int64, np.uint8, np.uint64, np.float32, np.float64, np.bool_,
+                                np.complex64, "<U3", "S2"])
+NUMPY_VALUES = st.one_of(
+    st.tuples(ARRAY_DTYPES, st.lists(st.integers(0, 5), max_size=2)).flatmap(
+        lambda spec: arrays(spec[0], tuple(spec[1]))),
+    st.sampled_from([np.int64(0), np.int64(-1), np.int64(10**18), np.float64(np.nan), np.str_("x"), np.bool_(True),
+                     np.array([-1, 0, 1, 1, 2, 2], np.int64), np.array([0, 0, 0], np.uint64),
+                     np.array([-1, 0, 0, 0], np.float64), np.zeros((4, 32), np.int8)]),
+)
+
+
+def vocabulary_files() -> st.SearchStrategy[bytes]:
+    """npz files of the valid vocabulary with keys replaced by other arrays or left out, whole or truncated."""
+    edits = st.dictionaries(st.sampled_from(sorted(VOCABULARY_ARRAYS)), st.one_of(NUMPY_VALUES, st.none()), max_size=3)
+
+    def npz(changes: dict) -> bytes:
+        values = {key: changes.get(key, value) for key, value in VOCABULARY_ARRAYS.items()}
+        buffer = io.BytesIO()
+        np.savez(buffer, **{key: value for key, value in values.items() if value is not None})
+        return buffer.getvalue()
+
+    files = edits.map(npz)
+    return st.one_of(files, files, st.tuples(files, st.floats(0, 1)).map(lambda pair: pair[0][:int(len(pair[0]) * pair[1])]),
+                     st.binary(max_size=64))
+
+
+@FUZZ
+@given(content=vocabulary_files())
+def test_vocabulary_file(folder, content):
+    (folder / "vocabulary.npz").write_bytes(content)
+    vocabulary = parses_or_refuses(Vocabulary.load, folder / "vocabulary.npz")
+    if vocabulary is not None:  # a file that loads describes a tree the descent can use
+        vocabulary.transform(np.zeros((2, 32), np.uint8))

@@ -123,10 +123,22 @@ def image_size(path: Path) -> tuple[int, int]:
 
 
 def check_files_exist(paths: list[Path], listed_in: Path) -> None:
-    """Every image a list file refers to must exist; name the first missing one."""
-    missing = [path for path in paths if not path.is_file()]
-    if missing:
-        raise InputError(f"{listed_in}: refers to {len(missing)} missing image(s), first {missing[0]}")
+    """A list file none of whose images exists is a wrong folder (or paths relative to somewhere else): refuse it.
+    A few missing images are frames the camera or the disk lost: they are skipped when read, each with an event
+    naming the file (or stop the run, with the "abort" policy), as unreadable ones are."""
+    if paths and not any(path.is_file() for path in paths):
+        raise InputError(f"{listed_in}: none of the {len(paths)} images it lists exists (first {paths[0]})")
+
+
+def fill_numbering_gaps(paths: list[Path], numbers: np.ndarray, name_of,
+                        first: int | None = None) -> tuple[list[Path], np.ndarray]:
+    """Images named by frame number with numbers missing in between (a lost file): the missing frames get the path
+    they should have (``name_of(number)``, beside the others), read as a missing image, so that every frame number
+    keeps its frame and its timestamp. Returns the paths and the numbers from ``first`` (default: the smallest
+    number) to the largest."""
+    present = dict(zip(numbers.tolist(), paths))
+    every = np.arange(numbers.min() if first is None else first, numbers.max() + 1)
+    return [present.get(number, paths[0].parent / name_of(number)) for number in every.tolist()], every
 
 
 def check_ground_truth_overlap(ground_truth: Trajectory, timestamps: np.ndarray, path: Path) -> None:
@@ -282,7 +294,8 @@ class Sequence:
 
     def _problem_with(self, raw: np.ndarray | None, path: str) -> str | None:
         if raw is None:
-            return f"{path}: unreadable or corrupt image"
+            missing = isinstance(self._images, ImageFiles) and not Path(path).is_file()
+            return f"{path}: {'no such image file' if missing else 'unreadable or corrupt image'}"
         expected = (self.raw_camera.height, self.raw_camera.width)
         if raw.shape != expected:
             return (

@@ -4,7 +4,8 @@ Images are already rectified: the camera is the left 3x4 projection matrix of ca
 image_2). times.txt holds seconds from the start, one line per frame. Ground truth, where present, is one
 row-major 3x4 camera-to-world matrix per frame in poses/NN.txt; NN is the sequence number, taken from the
 folder name (``00``, ``kitti00_first100``) or the only file in poses/. Image NNNNNN.png is frame NNNNNN of
-times.txt and of the poses, so a folder holding only the first images of a sequence still lines up.
+times.txt and of the poses, so a folder holding only the first images of a sequence still lines up; an image missing
+among them is a frame skipped with an event, not a frame less.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, image_size
+from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, fill_numbering_gaps, image_size
 from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, parse_numbers, read_table, split_fields, text_lines
 from vo_core.errors import InputError
@@ -43,7 +44,9 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     image_paths = sorted(image_folder.glob("*.png"))
     if not image_paths:
         raise InputError(f"{image_folder}: no PNG images")
-    frame_numbers = _frame_numbers(image_paths)
+    digits = len(image_paths[0].stem)
+    image_paths, frame_numbers = fill_numbering_gaps(image_paths, _frame_numbers(image_paths),
+                                                     lambda number: f"{number:0{digits}d}.png")
     times_file = path / "times.txt"
     timestamps = _per_frame(read_table(times_file, 1)[:, 0], frame_numbers, times_file)
     check_increasing(timestamps, times_file)

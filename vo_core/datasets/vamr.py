@@ -2,7 +2,8 @@
 
 K.txt is a 3x3 matrix (comma or space separated); the images are rendered pinhole images without distortion.
 poses.txt, where present, has one row-major 3x4 camera-to-world matrix per frame. The dataset has no
-timestamps: frame i is at i x 0.1 s (``nominal_timestamps``), as in every output of the project.
+timestamps: frame i is at i x 0.1 s (``nominal_timestamps``), as in every output of the project. Image img_i is
+frame i: a missing image is a frame skipped with an event, not a shift of the frames after it.
 """
 
 from __future__ import annotations
@@ -11,7 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, image_size, nominal_timestamps
+from vo_core.datasets.base import (
+    ImageFiles,
+    LoadOptions,
+    Sequence,
+    fill_numbering_gaps,
+    image_size,
+    nominal_timestamps,
+)
 from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import read_matrix, require_file
 from vo_core.errors import InputError
@@ -28,16 +36,14 @@ def detect(path: Path) -> bool:
 
 
 def load(path: Path, options: LoadOptions) -> Sequence:
-    image_paths = sorted((path / "images").glob(IMAGE_PATTERN))
-    frame_numbers = np.array([int(p.stem[len("img_"):]) for p in image_paths])
-    if not np.array_equal(frame_numbers, np.arange(len(image_paths))):
-        gap = int(np.argmax(frame_numbers != np.arange(len(image_paths))))
-        raise InputError(f"{path / 'images'}: images are not numbered 0..{len(image_paths) - 1}: frame {gap} missing")
+    found = sorted((path / "images").glob(IMAGE_PATTERN))
+    numbers = np.array([int(p.stem[len("img_"):]) for p in found])
+    image_paths, _ = fill_numbering_gaps(found, numbers, lambda number: f"img_{number:05d}.png", first=0)
     timestamps = nominal_timestamps(len(image_paths))
     if options.camera_file is not None:
         calibration = load_camera_file(options.camera_file)
     else:
-        calibration = CameraFile(_camera(path / "K.txt", image_paths[0]))
+        calibration = CameraFile(_camera(path / "K.txt", found[0]))
     return Sequence(
         name=path.name,
         layout=NAME,

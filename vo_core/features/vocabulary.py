@@ -96,7 +96,7 @@ class Vocabulary:
         self.parents = _read_only(np.asarray(parents, dtype=np.int32))
         self.node_descriptors = _read_only(np.ascontiguousarray(node_descriptors, dtype=np.uint8))
         self.word_weights = _read_only(np.asarray(word_weights, dtype=np.float64))
-        self.children = _read_only(_children_table(self.parents, self.branching))
+        self.children = _read_only(_children_table(self.parents))
         is_leaf = _leaves(self.parents)
         if len(self.word_weights) != int(is_leaf.sum()):
             raise ValueError(f"{len(self.word_weights)} word weights for a tree of {int(is_leaf.sum())} leaves")
@@ -216,9 +216,11 @@ def _leaves(parents: np.ndarray) -> np.ndarray:
     return np.bincount(parents[1:], minlength=len(parents)) == 0
 
 
-def _children_table(parents: np.ndarray, branching: int) -> np.ndarray:
-    """(num_nodes, branching) children of every node in increasing order, NO_NODE padded."""
-    table = np.full((len(parents), branching), NO_NODE, dtype=np.int32)
+def _children_table(parents: np.ndarray) -> np.ndarray:
+    """(num_nodes, most children of a node) children of every node in increasing order, NO_NODE padded: as wide as
+    the tree needs, which the branching bounds (a file may declare any branching)."""
+    width = int(np.bincount(parents[1:], minlength=len(parents)).max())
+    table = np.full((len(parents), width), NO_NODE, dtype=np.int32)
     child = np.arange(1, len(parents), dtype=np.int32)
     parent = parents[1:].astype(np.int64)
     order = np.argsort(parent, kind="stable")
@@ -236,6 +238,10 @@ def _distances_to_candidates(descriptors: np.ndarray, node_descriptors: np.ndarr
     right = node_descriptors[np.where(valid, candidates, ROOT).ravel()]
     distance = hamming_rows(left, right).reshape(rows, width)
     return np.where(valid, distance, UNREACHABLE)
+
+
+def _is_integer_scalar(value: np.ndarray) -> bool:
+    return value.shape == () and np.issubdtype(value.dtype, np.integer)
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
@@ -259,10 +265,10 @@ def _check_consistent(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
     if str(arrays["kind"]) != FILE_KIND:
         fail(f"kind {str(arrays['kind'])!r}, expected {FILE_KIND!r}")
-    if arrays["format_version"].shape != () or int(arrays["format_version"]) != FORMAT_VERSION:
+    if not _is_integer_scalar(arrays["format_version"]) or int(arrays["format_version"]) != FORMAT_VERSION:
         fail(f"format version {arrays['format_version']}, this program reads {FORMAT_VERSION}")
     for key in ("branching", "depth"):
-        if arrays[key].shape != () or not np.issubdtype(arrays[key].dtype, np.integer) or int(arrays[key]) < 1:
+        if not _is_integer_scalar(arrays[key]) or int(arrays[key]) < 1:
             fail(f"{key} must be a positive integer, got {arrays[key]}")
     parents, descriptors, weights = arrays["parents"], arrays["node_descriptors"], arrays["word_weights"]
     count = len(parents) if parents.ndim == 1 else -1
@@ -276,6 +282,8 @@ def _check_consistent(path: Path, arrays: dict[str, np.ndarray]) -> None:
     if np.any(np.bincount(parents[1:], minlength=count) > int(arrays["branching"])):
         fail(f"a node has more than branching = {int(arrays['branching'])} children")
     depth = int(arrays["depth"])
+    if depth >= count:
+        fail(f"depth {depth} is more than a tree of {count} nodes can have")
     level = np.zeros(count, dtype=np.int64)
     for _ in range(depth + 1):  # after d rounds every node of level <= d has its level
         level[1:] = level[parents[1:]] + 1
