@@ -243,7 +243,17 @@ def test_jump_leaves_out_a_block_of_frames_for_a_large_baseline():
     assert translation[gap] > 5 * np.median(others) and rotation[gap] > 3 * np.median(np.delete(rotation, gap))
 
 
-@pytest.mark.parametrize("preset", ["smooth", "forward", "rotation", "planar", "jump"])
+def test_loop_ends_where_it_starts():
+    poses = make_trajectory("loop", 90, seed=9).poses
+    translation, rotation = _steps(poses)
+    # From the last frame back to the first is one more ordinary step: played twice, the loop moves on smoothly.
+    closing_translation, closing_rotation = _steps(np.stack([poses[-1], poses[0]]))
+    assert closing_translation[0] < 2 * np.median(translation) and closing_rotation[0] < 2 * np.median(rotation)
+    assert np.ptp(poses[:, :3, 3], axis=0).max() > 0.5  # a loop through the room, not a wobble in place
+    assert translation.max() < 3 * np.median(translation)
+
+
+@pytest.mark.parametrize("preset", ["smooth", "forward", "rotation", "planar", "jump", "loop"])
 def test_the_scene_fills_every_view_of_the_preset(preset):
     sequence = make_sequence(preset, 45, seed=0, width=64, height=48)
     assert all(np.isfinite(frame.depth).all() for frame in sequence)

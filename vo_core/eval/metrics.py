@@ -4,7 +4,8 @@
   sec. "Evaluation metrics"; Zhang & Scaramuzza 2018, "A Tutorial on Quantitative Trajectory Evaluation").
 - RPE, the relative pose error over a delta in frames or metres (Sturm et al. 2012, the same section).
 - The drifts of the TUM monoVO benchmark (Engel, Usenko & Cremers 2016, "A Photometrically Calibrated
-  Benchmark For Monocular Visual Odometry", sec. "Evaluation Metrics").
+  Benchmark For Monocular Visual Odometry", sec. "Evaluation Metrics"), also at the end of each loop of a
+  sequence played several times in a row (FDMO sec. 5.3.1).
 - The frame-drop error of FDMO (Younes, Asmar & Zelek 2019, sec. 5.3.2).
 
 ``evaluate`` combines them into the JSON-ready dictionary that ``metrics.json`` and ``fdmo eval`` show.
@@ -142,7 +143,9 @@ def tum_mono_drift(
     S_s = argmin_S sum_{i in start} ||S p_i - p^_i||^2 and S_e likewise over the end (Sim(3)); the
     accumulated drift is T_drift = S_e S_s^-1, and e_align = sqrt(1/n sum_{i=1..n} ||S_s p_i - S_e p_i||^2)
     over all n estimated positions: how far apart the two alignments put the trajectory, which weighs
-    scale, rotation and translation drift together."""
+    scale, rotation and translation drift together. All n, not only the segments' frames: the paper's p_1..p_n
+    are the tracked positions of frames 1..n with S, E subsets of them, and the benchmark's own evaluation
+    (efficientEvalDrift.m of the TUM monoVO tools) divides by the number of estimated positions."""
     S_start, S_end = fit_alignment(*start, method="sim3"), fit_alignment(*end, method="sim3")
     T_drift = S_end.transform @ sim3_inverse(S_start.transform)
     scale = sim3_scale(T_drift)
@@ -164,9 +167,8 @@ def drift_segments(
     ground truth): before and after the longest gap of a ground truth that covers only both ends (TUM monoVO),
     else the first and last ``drift_segment_fraction`` of them; None when neither applies. The gap is looked
     for in the ground truth itself: a gap in the estimate (lost tracking, dropped frames) is not a segment."""
-    spacing = np.diff(truth_timestamps)
-    if len(spacing) and spacing.max() > config.drift_gap_factor * np.median(spacing):
-        gap_end = truth_timestamps[int(np.argmax(spacing)) + 1]
+    gap_end = ground_truth_gap_end(truth_timestamps, config)
+    if gap_end is not None:
         after = matched_timestamps >= gap_end
         return np.flatnonzero(~after), np.flatnonzero(after)
     if config.drift_segment_fraction is None:
@@ -174,6 +176,64 @@ def drift_segments(
     n = len(matched_timestamps)
     size = int(round(config.drift_segment_fraction * n))
     return np.arange(min(size, n)), np.arange(max(n - size, 0), n)
+
+
+def ground_truth_gap_end(truth_timestamps: np.ndarray, config: EvalConfig) -> float | None:
+    """Where a ground truth that covers only a start and an end segment (TUM monoVO's groundtruthSync.txt) resumes
+    after its longest gap, a gap ``drift_gap_factor`` times longer than its median spacing; None for ground truth
+    that covers the whole run."""
+    spacing = np.diff(truth_timestamps)
+    if len(spacing) and spacing.max() > config.drift_gap_factor * np.median(spacing):
+        return float(truth_timestamps[int(np.argmax(spacing)) + 1])
+    return None
+
+
+def loop_drifts(
+    estimate: Trajectory,
+    ground_truth: Trajectory,
+    loops: list[tuple[float, float]],
+    config: EvalConfig = EvalConfig(),
+    max_dt: float = DEFAULT_MAX_DT_S,
+) -> list[Drift | None]:
+    """The drifts at the end of each loop of a sequence played several times in a row (FDMO sec. 5.3.1's two-loop
+    experiment, after Engel et al. 2016). ``loops`` are the time spans (first, last) of each loop's frames.
+
+    Each loop's start and end segments are found within it as ``evaluate`` finds them in a whole run
+    (``drift_segments``). At the end of loop k, S_s is fitted on the start segment of the FIRST loop and S_e on
+    the end segment of loop k, and e_align runs over the whole estimate up to the end of loop k: so the drift
+    at the end of loop 2 holds the first loop's drift, the second's and the error of the jump between them.
+    None for a loop in which a segment has too few poses (or does not move)."""
+    segments = [_segments(estimate.within(first, last), ground_truth.within(first, last), config, max_dt)
+                for first, last in loops]
+    return [
+        None if segments[0] is None or segment is None
+        else _drift_between(estimate.within(-np.inf, last), segments[0][0], segment[1])
+        for (_, last), segment in zip(loops, segments)
+    ]
+
+
+def _segments(estimate: Trajectory, ground_truth: Trajectory, config: EvalConfig, max_dt: float):
+    """The matched (estimate, ground truth) poses of the start and the end segment of a run; None without them."""
+    try:
+        matched_estimate, matched_truth = associate(estimate, ground_truth, max_dt)
+    except InputError:  # no estimated pose near the ground truth: the run was lost there
+        return None
+    return _matched_segments(matched_estimate, matched_truth, ground_truth.timestamps, config)
+
+
+def _matched_segments(matched_estimate: Trajectory, matched_truth: Trajectory, truth_timestamps: np.ndarray,
+                      config: EvalConfig):
+    segments = drift_segments(truth_timestamps, matched_truth.timestamps, config)
+    if segments is None or min(len(segment) for segment in segments) < config.drift_min_segment_poses:
+        return None
+    return tuple((matched_estimate.subset(segment), matched_truth.subset(segment)) for segment in segments)
+
+
+def _drift_between(estimate: Trajectory, start, end) -> Drift | None:
+    try:
+        return tum_mono_drift(estimate, start, end)
+    except InputError:  # a segment in which the camera does not move has no Sim(3)
+        return None
 
 
 # ------------------------------------------------------------------------------------- frame-drop error
@@ -312,15 +372,5 @@ def _rpe_summary(aligned, matched_truth, first, second, config: EvalConfig) -> d
 
 
 def _drift(estimate, ground_truth, matched_estimate, matched_truth, config: EvalConfig) -> Drift | None:
-    segments = drift_segments(ground_truth.timestamps, matched_truth.timestamps, config)
-    if segments is None or min(len(segment) for segment in segments) < config.drift_min_segment_poses:
-        return None
-    start, end = segments
-    try:
-        return tum_mono_drift(
-            estimate,
-            (matched_estimate.subset(start), matched_truth.subset(start)),
-            (matched_estimate.subset(end), matched_truth.subset(end)),
-        )
-    except InputError:  # a segment in which the camera does not move has no Sim(3)
-        return None
+    segments = _matched_segments(matched_estimate, matched_truth, ground_truth.timestamps, config)
+    return None if segments is None else _drift_between(estimate, *segments)

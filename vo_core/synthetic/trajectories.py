@@ -10,7 +10,10 @@ Each preset gives timestamps and ``T_world_cam`` poses at a fixed frame rate, in
 - ``planar``: smooth motion facing the single plane of the "plane" scene;
 - ``jump``: ``smooth`` with a block of consecutive frames left out: a large baseline between two
   consecutive frames of the sequence (FDMO sec. 5.3.2's frame-drop experiment);
-- ``static``: the identity pose in every frame.
+- ``static``: the identity pose in every frame;
+- ``loop``: a closed handheld loop through the room that ends where it starts: the frame after the last would be
+  the first again, so a sequence played twice in a row moves on smoothly (TUM monoVO's sequences start and end
+  at the same place; FDMO sec. 5.3.1's two-loop experiment).
 
 Sums of sinusoids are bounded by the sum of their amplitudes, so the camera stays inside a known box and
 orientation range: the room is closed, the plane large enough, and every view is filled.
@@ -45,6 +48,9 @@ class TrajectoryConfig:
     forward_start_z_m: float = -1.5
     forward_max_travel_m: float = 3.0  # stops 0.7 m before the nearest panel; longer sequences move slower
     jump_dropped_frames: int = 15  # half a second at 30 Hz: a baseline of 10-40 cm and several degrees
+    # The loop: harmonics 1, 2, ... of one turn per sequence (periodic, hence closed), within these bounds.
+    loop_translation_m: tuple[float, float, float] = (0.5, 0.2, 0.4)
+    loop_rotation_rad: tuple[float, float, float] = (0.1, 0.25, 0.05)
 
 
 @dataclass(frozen=True)
@@ -64,8 +70,14 @@ def smooth_signal(
     amplitudes = np.asarray(amplitudes, float)
     shape = (config.sinusoids, len(amplitudes))
     frequencies = rng.uniform(*config.frequency_range_hz, shape)
-    phases = rng.uniform(0.0, 2 * np.pi, shape)
-    weights = rng.dirichlet(np.ones(config.sinusoids), len(amplitudes)).T  # (sinusoids, D), columns sum to 1
+    return _sinusoids(rng, times, amplitudes, frequencies)
+
+
+def _sinusoids(rng: np.random.Generator, times: np.ndarray, amplitudes: np.ndarray, frequencies: np.ndarray):
+    """(N, D) sums of sinusoids of the given (sinusoids, D) ``frequencies`` (Hz) with random phases and random
+    amplitudes that split ``amplitudes[d]``."""
+    phases = rng.uniform(0.0, 2 * np.pi, frequencies.shape)
+    weights = rng.dirichlet(np.ones(len(frequencies)), len(amplitudes)).T  # (sinusoids, D), columns sum to 1
     angles = 2 * np.pi * frequencies[None] * times[:, None, None] + phases[None]
     return np.sum(weights * amplitudes * np.sin(angles), axis=1)
 
@@ -104,6 +116,17 @@ def _forward_poses(num_frames: int, rng: np.random.Generator, config: Trajectory
     return _poses(np.zeros((num_frames, 3)), positions)
 
 
+def _loop_poses(num_frames: int, rng: np.random.Generator, config: TrajectoryConfig) -> np.ndarray:
+    """Sinusoids of 1, 2, ... turns per ``num_frames`` frames: every curve repeats after the last frame, so the
+    pose of frame ``num_frames`` would be frame 0's."""
+    times = _times(num_frames, config)
+    turn_hz = config.frame_rate_hz / num_frames
+    harmonics = np.arange(1, config.sinusoids + 1, dtype=float)[:, None] * turn_hz
+    positions = _sinusoids(rng, times, np.asarray(config.loop_translation_m), np.repeat(harmonics, 3, axis=1))
+    rotations = _sinusoids(rng, times, np.asarray(config.loop_rotation_rad), np.repeat(harmonics, 3, axis=1))
+    return _poses(rotations, positions)
+
+
 def _static_poses(num_frames: int, rng: np.random.Generator, config: TrajectoryConfig) -> np.ndarray:
     return np.repeat(np.eye(4)[None], num_frames, axis=0)
 
@@ -116,6 +139,7 @@ _PRESETS: dict[str, tuple[Callable[[int, np.random.Generator, TrajectoryConfig],
     "planar": (_planar_poses, "plane"),
     "jump": (_smooth_poses, "room"),
     "static": (_static_poses, "room"),
+    "loop": (_loop_poses, "room"),
 }
 PRESETS = tuple(_PRESETS)
 
