@@ -1,12 +1,13 @@
-"""The command line: ``fdmo run | eval | info | plot | vocabulary``.
+"""The command line: ``fdmo run | eval | info | plot | vocabulary | experiment``.
 
     fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
-             [--start N] [--end N] [--drop FRAME:COUNT ...] [--gt FILE] [--rrd FILE | --no-rrd]
-             [--viser [--host ADDRESS] [--port P]] [--quiet]
+             [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...] [--gt FILE]
+             [--rrd FILE | --no-rrd] [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
     fdmo vocabulary train IMAGE... --out FILE [--branching K] [--depth L] [--seed S]
     fdmo plot RESULT_DIR [--out FILE] [--gt FILE] [--align sim3|se3|none] [--plane xy|xz|yz]
+    fdmo experiment frame-drop|two-loop|timing SOURCE [--methods fdmo,direct,klt] [--out DIR] ...
 
 Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
 when the reader of the output went away (``fdmo info X | head``). The viewers and matplotlib are imported only
@@ -44,6 +45,7 @@ DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
+REAL_TIME = 1.0  # the player's speed with --viser: the sequence's frame rate, from its timestamps
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -55,14 +57,26 @@ class _OneLineParser(argparse.ArgumentParser):
 
 def _drop(text: str) -> tuple[int, int]:
     """``FRAME:COUNT`` of --drop."""
-    frame, _, count = text.partition(":")
-    try:
-        parsed = int(frame), int(count)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--drop {text}: expected FRAME:COUNT, two integers") from None
-    if parsed[0] < 0 or parsed[1] < 1:
+    frame, count = _two_integers("--drop", text, "FRAME:COUNT")
+    if frame < 0 or count < 1:
         raise argparse.ArgumentTypeError(f"--drop {text}: FRAME must be >= 0 and COUNT >= 1")
-    return parsed
+    return frame, count
+
+
+def _jump(text: str) -> tuple[int, int]:
+    """``FRAME:TARGET`` of --jump."""
+    frame, target = _two_integers("--jump", text, "FRAME:TARGET")
+    if frame < 0 or target < 0 or target == frame:
+        raise argparse.ArgumentTypeError(f"--jump {text}: FRAME and TARGET must be >= 0 and differ")
+    return frame, target
+
+
+def _two_integers(option: str, text: str, form: str) -> tuple[int, int]:
+    first, _, second = text.partition(":")
+    try:
+        return int(first), int(second)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{option} {text}: expected {form}, two integers") from None
 
 
 def _port(text: str) -> int:
@@ -90,6 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--end", type=int, help="stop before this frame")
     run.add_argument("--drop", dest="drops", type=_drop, action="append", default=[], metavar="FRAME:COUNT",
                      help="the odometry never sees frames FRAME..FRAME+COUNT-1 (repeatable)")
+    run.add_argument("--jump", dest="jumps", type=_jump, action="append", default=[], metavar="FRAME:TARGET",
+                     help="after frame FRAME, go on from frame TARGET: back (frames played again) or ahead; "
+                          "once per run (repeatable)")
     recording = run.add_mutually_exclusive_group()
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
@@ -132,6 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--branching", type=int, default=VocabularyConfig.branching, help="k (default: %(default)s)")
     train.add_argument("--depth", type=int, default=VocabularyConfig.depth, help="L (default: %(default)s)")
     train.add_argument("--seed", type=int, default=0, help="seed of the k-means++ choices (default: %(default)s)")
+
+    from app.experiments import add_experiment_parsers
+
+    experiment = commands.add_parser("experiment", help="the experiments of FDMO section 5: frame-drop, two-loop, "
+                                                        "timing")
+    add_experiment_parsers(experiment, _OneLineParser, _add_source_options)
     return parser
 
 
@@ -166,8 +189,8 @@ def command_run(args: argparse.Namespace) -> int:
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
-    _check_drops(args.drops, sequence.indices)
-    player = Player(sequence, args.drops)
+    _check_drops_and_jumps(args.drops, args.jumps, sequence.indices)
+    player = Player(sequence, args.drops, args.jumps)
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
     try:
         summary = _until_signalled(player, lambda: run_sequence(
@@ -193,13 +216,18 @@ def _sinks(args: argparse.Namespace, sequence, player, out_dir: Path) -> list:
     return sinks
 
 
-def _check_drops(drops: list[tuple[int, int]], frame_indices) -> None:
-    """A drop at a frame the run never reaches is a typo, not an experiment: say so."""
+def _check_drops_and_jumps(drops: list[tuple[int, int]], jumps: list[tuple[int, int]], frame_indices) -> None:
+    """A drop or a jump at a frame the run never reaches, or a jump to a frame it does not have, is a typo, not an
+    experiment: say so."""
     played = set(frame_indices.tolist())
-    for frame, count in drops:
-        if frame not in played:
-            raise InputError(f"--drop {frame}:{count}: frame {frame} is not among the frames played "
-                             f"({frame_indices[0]}..{frame_indices[-1]})")
+    frames = f"({frame_indices[0]}..{frame_indices[-1]})"
+    for option, pairs in (("--drop", drops), ("--jump", jumps)):
+        for frame, second in pairs:
+            if frame not in played:
+                raise InputError(f"{option} {frame}:{second}: frame {frame} is not among the frames played {frames}")
+    for frame, target in jumps:
+        if target not in played:
+            raise InputError(f"--jump {frame}:{target}: frame {target} is not in the sequence played {frames}")
 
 
 @contextlib.contextmanager
@@ -260,8 +288,11 @@ def _rerun_sink(path: Path, sequence):
 def _viser_view(sequence, player, host: str, port: int):
     from app.sinks.viser_view import ViserView  # imported here: a headless run never loads viser
 
-    view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, host=host, port=port)
-    print(f"fdmo: live view at {view.url} (Ctrl-C to quit)", file=sys.stderr)
+    player.speed = REAL_TIME  # watched live: at the sequence's own frame rate (the page's slider changes it)
+    view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, host=host, port=port,
+                     wait_for_browser=True)
+    print(f"fdmo: live view at {view.url}; playback starts when a browser opens it (Ctrl-C to quit)",
+          file=sys.stderr)
     return view
 
 
@@ -291,12 +322,17 @@ def _incidents(metrics: dict[str, Any]) -> list[str]:
     counts = [
         (metrics["skipped_frames"], "unreadable frame skipped", "unreadable frames skipped"),
         (metrics["dropped_frames"], "frame dropped", "frames dropped"),
+        (len(metrics["jumps"]), f"jump ({_jumps(metrics['jumps'])})", f"jumps ({_jumps(metrics['jumps'])})"),
         (events[EventKind.TRACKING_FAILED.value], "tracking failure", "tracking failures"),
         (events[EventKind.DIVERGENCE_DETECTED.value], "divergence", "divergences"),
         (recovered + unrecovered, f"recovery {outcome}", f"recoveries {outcome}"),
         (events[EventKind.REINITIALIZATION.value], "reinitialization", "reinitializations"),
     ]
     return [_counted(count, one, many) for count, one, many in counts if count]
+
+
+def _jumps(jumps: list[dict[str, Any]]) -> str:
+    return ", ".join(f"{jump['from_frame']} -> {jump['to_frame']}" for jump in jumps)
 
 
 def _counted(count: int, one: str, many: str) -> str:
@@ -393,10 +429,18 @@ def _image_files(path: Path) -> list[Path]:
     return [path]
 
 
+def command_experiment(args: argparse.Namespace) -> int:
+    """``fdmo experiment NAME SOURCE``: app/experiments/ writes the folder and prints the table."""
+    from app.experiments import run_experiment
+
+    run_experiment(args)
+    return EXIT_OK
+
+
 # ------------------------------------------------------------------------------------------------ main
 
 COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plot": command_plot,
-            "vocabulary": command_vocabulary}
+            "vocabulary": command_vocabulary, "experiment": command_experiment}
 
 
 def main(argv: SequenceOf[str] | None = None) -> int:

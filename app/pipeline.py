@@ -15,7 +15,7 @@ from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence as SequenceOf
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -37,6 +37,13 @@ COMPLETED = "completed"  # the end of the sequence was reached
 STOPPED = "stopped"  # player.stop() (a viewer or the caller)
 RESTARTED = "restarted"  # a restart was requested; the next pass starts over
 INTERRUPTED = "interrupted"  # player.interrupt() (Ctrl-C, SIGTERM) or an exception
+
+
+@runtime_checkable
+class Restartable(Protocol):
+    """A sink that shows one pass at a time (the progress bar, the viewers): told when a new pass starts over."""
+
+    def restart(self) -> None: ...
 
 
 @dataclass
@@ -89,6 +96,7 @@ def run_sequence(
     out_dir: str | Path,
     sinks: Iterable[Sink] = (),
     drops: SequenceOf[tuple[int, int]] = (),
+    jumps: SequenceOf[tuple[int, int]] = (),
     *,
     player: Player | None = None,
     show_progress: bool = False,
@@ -96,27 +104,26 @@ def run_sequence(
 ) -> RunSummary:
     """Run ``config.method`` over ``sequence``, writing the result files into ``out_dir``.
 
-    ``drops`` are scripted ``(frame_index, count)`` drops; pass ``player`` instead when a viewer controls
-    playback. With ``keep_alive`` (the live viewer) the run waits at the end of the sequence for a restart
-    or a stop; a restart, at any time, starts a fresh odometry from the first frame and rewrites the files.
+    ``drops`` are scripted ``(frame_index, count)`` drops and ``jumps`` scripted ``(frame_index, target)`` jumps;
+    pass ``player`` instead when a viewer controls playback. With ``keep_alive`` (the live viewer) the run waits
+    at the end of the sequence for a restart or a stop; a restart, at any time, starts a fresh odometry from the
+    first frame, rewrites the files and restarts the sinks that show a pass (``Restartable``).
     Returns the summary of the last pass.
     """
     if player is None:
-        player = Player(sequence, drops)
-    elif drops:
-        raise ValueError("give scripted drops to the Player, not to run_sequence, when passing a player")
+        player = Player(sequence, drops, jumps)
+    elif drops or jumps:
+        raise ValueError("give scripted drops and jumps to the Player, not to run_sequence, when passing a player")
     files = FilesSink(out_dir)
-    progress = ProgressBar(len(sequence)) if show_progress else None
-    run = _Run(sequence, config, files, [*([progress] if progress else []), *sinks])
+    progress = [ProgressBar(len(sequence), clock=player.playing_time)] if show_progress else []
+    run = _Run(sequence, config, files, [*progress, *sinks])
     try:
         while True:
             summary = run.play_once(player)
             restart = player.wait_for_restart() if keep_alive else player.restart_requested
             if not restart:
                 return summary
-            run.reset()
-            if progress is not None:
-                progress.restart()
+            run.next_pass()
     finally:
         run.close()
 
@@ -129,10 +136,17 @@ class _Run:
         self.config = config
         self.files = files
         self.sinks = sinks
-        self.reset()
+        self._new_odometry()
 
-    def reset(self) -> None:
-        """A fresh odometry (and statistics) for the next pass; the sinks are kept."""
+    def next_pass(self) -> None:
+        """A fresh odometry (and statistics) for the next pass; the sinks are kept, and those that show a pass
+        start over."""
+        self._new_odometry()
+        for sink in self.sinks:
+            if isinstance(sink, Restartable):
+                sink.restart()
+
+    def _new_odometry(self) -> None:
         self.statistics = _Statistics()
         self.odometry = Odometry(self.config, self.sequence.camera, [self.files, self.statistics, *self.sinks])
 
@@ -140,18 +154,18 @@ class _Run:
         """One pass from the first frame; the files are finished whatever ends it."""
         self.files.begin(self.config)
         status = INTERRUPTED
-        started = time.perf_counter()
+        started, started_playing = time.perf_counter(), player.playing_time()
         try:
             self._play(player)
             status = (COMPLETED if player.finished else RESTARTED if player.restart_requested
                       else INTERRUPTED if player.interrupted else STOPPED)
         finally:
-            summary = self._finish(status, time.perf_counter() - started)
+            summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing)
         return summary
 
     def _play(self, player: Player) -> None:
         emit = self.odometry.report
-        for frame in player.play(on_drop=emit):
+        for frame in player.play(on_event=emit):
             if frame.image is None:
                 # The loader could not read this image (policy "skip"): the odometry must not see a hole.
                 emit(Event(EventKind.FRAME_SKIPPED, frame.index, frame.timestamp,
@@ -161,8 +175,11 @@ class _Run:
             self.odometry.track(frame)
             self.statistics.step_ms.append(1000.0 * (time.perf_counter() - started))
 
-    def _finish(self, status: str, wall_s: float) -> RunSummary:
+    def _finish(self, status: str, wall_s: float, playing_s: float) -> RunSummary:
+        """metrics.json and the files of the end of a pass. ``playing_s`` is the wall time less the pauses: the
+        frame rate is taken over it, as the progress bar and the viser page take theirs."""
         snapshot = self.odometry.map_snapshot()
+        estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_keyframes(snapshot.keyframe_poses)
         self.files.write_maps(snapshot)
         self.files.write_ground_truth(self._ground_truth_of_the_run())
@@ -173,10 +190,12 @@ class _Run:
             "status": status,
             "frames": len(self.sequence),
             **self.statistics.counts(),
+            "posed_frames": len(estimate),
             "wall_s": wall_s,
-            "fps": self.statistics.processed / wall_s if wall_s > 0 else None,
+            "playing_s": playing_s,
+            "fps": self.statistics.processed / playing_s if playing_s > 0 else None,
             "timing_ms": self.statistics.timing_ms(),
-            "evaluation": _evaluate(self.statistics.estimate(), getattr(self.sequence, "ground_truth", None)),
+            "evaluation": _evaluate(estimate, getattr(self.sequence, "ground_truth", None)),
         }
         self.files.write_metrics(metrics)
         return RunSummary(self.files.out_dir, metrics)
@@ -202,19 +221,15 @@ class _Statistics:
         self.tracked = 0
         self.keyframes = 0
         self.initialization_frame: int | None = None
-        self.timestamps: list[float] = []
-        self.poses: list[np.ndarray] = []
         self.stage_ms: dict[str, list[float]] = defaultdict(list)
         self.step_ms: list[float] = []  # the whole Odometry.track call, sinks included
         self.events: Counter[str] = Counter()
         self.dropped = 0
+        self.jumps: list[dict[str, Any]] = []
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self.processed += 1
         self.tracked += bool(result.tracked)
-        if result.T_world_cam is not None:
-            self.timestamps.append(result.timestamp)
-            self.poses.append(result.T_world_cam)
         if self.initialization_frame is None and result.tracked:
             self.initialization_frame = result.frame_index
         for stage, ms in result.timings_ms.items():
@@ -229,6 +244,8 @@ class _Statistics:
             self.initialization_frame = event.frame_index
         if event.kind is EventKind.FRAMES_DROPPED:
             self.dropped += int(event.details["count"])
+        if event.kind is EventKind.FRAMES_JUMPED:
+            self.jumps.append({key: event.details[key] for key in ("from_frame", "to_frame")})
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass
@@ -241,10 +258,10 @@ class _Statistics:
             "processed_frames": self.processed,
             "tracked_frames": self.tracked,
             "tracked_fraction": self.tracked / self.processed if self.processed else 0.0,
-            "posed_frames": len(self.poses),
             "keyframes": self.keyframes,
             "skipped_frames": self.events[EventKind.FRAME_SKIPPED.value],
             "dropped_frames": self.dropped,
+            "jumps": self.jumps,
             "initialization_frame": self.initialization_frame,
             "events": dict(sorted(self.events.items())),
         }
@@ -255,10 +272,6 @@ class _Statistics:
             stage: {"mean": float(np.mean(ms)), "median": float(np.median(ms)), "max": float(np.max(ms))}
             for stage, ms in stages.items() if ms
         }
-
-    def estimate(self) -> Trajectory:
-        poses = np.array(self.poses) if self.poses else np.zeros((0, 4, 4))
-        return Trajectory(np.array(self.timestamps), poses)
 
 
 def _evaluate(estimate: Trajectory, ground_truth: Trajectory | None) -> dict[str, Any] | None:

@@ -1,13 +1,20 @@
-"""Plays a sequence's frames in order: pacing, pause and step, scripted and live frame drops, restart, stop.
+"""Plays a sequence's frames: pacing, pause and step, drops and jumps (scripted and live), restart, stop.
 
 The tracking thread iterates the player; a viewer (the viser page) calls its controls from other threads.
 Every control only changes state under a lock and takes effect when the next frame is about to be handed
-out, so the odometry always sees a clean sequence of frames, some of which are simply missing.
+out, so the odometry always sees a clean sequence of frames, some of which are missing or come again.
 
-Frame drops are the experiment of FDMO section 5.3.2: frames ``index .. index+count-1`` are read but never
-given to the odometry, which then sees a large baseline between two consecutive frames. A scripted drop
-(``--drop FRAME:COUNT``) is queued through ``drop_next`` when the player reaches FRAME, exactly like a click
-on the page's "drop" button, so experiments and the browser do the same thing.
+Drops and jumps are the experiments of FDMO section 5.3.2: the odometry sees a large baseline between two
+consecutive frames. Both are one mechanism, a move of the player's cursor (the position of the next frame
+in the sequence) decided before the next frame is handed out:
+
+    drop COUNT        the cursor moves COUNT frames ahead: those frames are never read nor seen
+    jump to TARGET    the cursor moves to TARGET's position, back (the frames since are played again) or ahead
+
+A scripted drop (``--drop FRAME:COUNT``) is requested when the player reaches FRAME, a scripted jump
+(``--jump FRAME:TARGET``) once FRAME has been handed out; each fires once per pass (a replay does not fire it
+again). A click on the page's "drop" or "jump back" button requests the same moves, so experiments and the
+browser do the same thing. Each move is announced as an event: FRAMES_DROPPED or FRAMES_JUMPED.
 """
 
 from __future__ import annotations
@@ -25,35 +32,49 @@ from vo_core.events import Event, EventKind
 WAIT_SLICE_S = 0.2
 
 
-@dataclass
-class _DropRequest:
-    count: int
-    source: str  # "script" (--drop) or "live" (a viewer)
+@dataclass(frozen=True)
+class _Move:
+    """A requested move of the cursor: a drop of ``count`` frames, a jump to frame ``target`` or ``count``
+    frames back from the last frame handed out."""
+
+    kind: EventKind  # FRAMES_DROPPED or FRAMES_JUMPED
+    source: str  # "script" (--drop, --jump) or "live" (a viewer)
+    count: int = 0
+    target: int | None = None  # a frame index (jumps to a given frame)
 
 
 class Player:
-    """Frames of ``sequence`` in order, with ``drops`` as ``(frame_index, count)`` pairs.
+    """Frames of ``sequence`` in order, with ``drops`` as ``(frame, count)`` and ``jumps`` as ``(frame, target)``.
 
-    ``frame_index`` is ``Frame.index``, the position in the original sequence (stable under --start/--end).
-    Iterate with ``for frame in player`` or ``player.play(on_drop=callback)``; the callback receives one
-    FRAMES_DROPPED event per drop request, on the iterating thread, before the next frame is handed out.
-    A pass ends at the end of the sequence, on ``stop()``, or on ``request_restart()`` (then the caller
-    starts over: ``wait_for_restart()`` returns True and the next ``play()`` begins at the first frame).
+    ``sequence`` is a vo_core sequence (or anything with ``len``, iteration, ``indices``, ``timestamps`` and
+    ``cut(start)``): frames are read ahead from the cursor, and read afresh from wherever a move lands.
+    Frame numbers are ``Frame.index``, the positions in the original sequence (stable under --start/--end).
+    Iterate with ``for frame in player`` or ``player.play(on_event=callback)``; the callback receives one
+    FRAMES_DROPPED or FRAMES_JUMPED event per move, on the iterating thread, before the next frame is handed out.
+    A pass ends at the end of the sequence, on ``stop()``, or on ``request_restart()`` (then the caller starts
+    over: ``wait_for_restart()`` returns True and the next ``play()`` begins at the first frame).
     """
 
-    def __init__(self, sequence: Iterable[Any], drops: Iterable[tuple[int, int]] = ()):
+    def __init__(self, sequence, drops: Iterable[tuple[int, int]] = (), jumps: Iterable[tuple[int, int]] = ()):
         self.sequence = sequence
-        self.drops = _validated_drops(drops)
+        self.drops = _pairs(drops, "a drop needs a frame index >= 0 and a count >= 1", minimum=(0, 1))
+        self.jumps = _pairs(jumps, "a jump needs a frame index >= 0 and a target >= 0", minimum=(0, 0))
+        self._indices = [int(index) for index in sequence.indices]
+        self._timestamps = [float(timestamp) for timestamp in sequence.timestamps]
+        self._positions = {index: position for position, index in enumerate(self._indices)}
         self._condition = threading.Condition()
         self._paused = False
         self._steps = 0  # frames allowed through while paused
         self._speed = 0.0
-        self._drop_requests: deque[_DropRequest] = deque()
+        self._moves: deque[_Move] = deque()
         self._restart_requested = False
         self._stopped = False
         self._interrupted = False
         self._finished = False
         self._pace_anchor: tuple[float, float] | None = None  # (wall clock, dataset timestamp)
+        self._played_s = 0.0  # playing time of the stretches that ended
+        self._playing_since: float | None = None  # start of the current stretch (None: not playing)
+        self._in_pass = False  # inside play(): the clock may run
 
     # ------------------------------------------------------------------------------------ controls
 
@@ -91,27 +112,46 @@ class Player:
             raise ValueError(f"speed must be >= 0 (0 = as fast as possible), got {value}")
         self._update(_speed=value)
 
+    def playing_time(self) -> float:
+        """Seconds spent playing since the player was made: inside ``play()`` and not paused. Frame rates are
+        taken over this clock, so that a pause, or the wait for a browser, does not lower them."""
+        since = self._playing_since
+        return self._played_s + (0.0 if since is None else time.monotonic() - since)
+
     def pause(self) -> None:
-        self._update(_paused=True)
+        with self._condition:
+            self._paused = True
+            self._stop_the_clock()
+            self._changed()
 
     def resume(self) -> None:
-        self._update(_paused=False, _steps=0)
+        with self._condition:
+            self._paused, self._steps = False, 0
+            self._start_the_clock()
+            self._changed()
 
     def step(self) -> None:
         """Let exactly one frame through; pauses playback if it was running."""
         with self._condition:
             self._paused = True
+            self._stop_the_clock()
             self._steps += 1
             self._changed()
 
     def drop_next(self, count: int, source: str = "live") -> None:
-        """Skip the next ``count`` frames: they are read but the odometry never sees them."""
-        count = int(count)
-        if count < 1:
-            raise ValueError(f"drop_next needs a count >= 1, got {count}")
-        with self._condition:
-            self._drop_requests.append(_DropRequest(count, source))
-            self._changed()
+        """Skip the next ``count`` frames: the odometry never sees them."""
+        self._request(_Move(EventKind.FRAMES_DROPPED, source, count=_at_least_one(count, "drop_next")))
+
+    def jump_back(self, count: int, source: str = "live") -> None:
+        """Continue from ``count`` frames before the last frame handed out (the first frame at most): those frames
+        are played again."""
+        self._request(_Move(EventKind.FRAMES_JUMPED, source, count=_at_least_one(count, "jump_back")))
+
+    def jump_to(self, target: int, source: str = "live") -> None:
+        """Continue from frame ``target`` (a frame index of the sequence), back or ahead."""
+        if int(target) not in self._positions:
+            raise ValueError(f"jump_to: frame {target} is not in the sequence")
+        self._request(_Move(EventKind.FRAMES_JUMPED, source, target=int(target)))
 
     def request_restart(self) -> None:
         """End the current pass at the next frame; the pipeline resets the odometry and starts over."""
@@ -134,6 +174,11 @@ class Player:
                 self._condition.wait(WAIT_SLICE_S)
             return self._restart_requested and not self._stopped
 
+    def _request(self, move: _Move) -> None:
+        with self._condition:
+            self._moves.append(move)
+            self._changed()
+
     def _update(self, **state: Any) -> None:
         with self._condition:
             for name, value in state.items():
@@ -145,47 +190,92 @@ class Player:
         self._pace_anchor = None
         self._condition.notify_all()
 
+    def _start_the_clock(self) -> None:
+        if self._in_pass and not self._paused and self._playing_since is None:
+            self._playing_since = time.monotonic()
+
+    def _stop_the_clock(self) -> None:
+        if self._playing_since is not None:
+            self._played_s += time.monotonic() - self._playing_since
+            self._playing_since = None
+
     # ------------------------------------------------------------------------------------ playback
 
     def __iter__(self) -> Iterator[Any]:
         return self.play()
 
-    def play(self, on_drop: Callable[[Event], None] | None = None) -> Iterator[Any]:
+    def play(self, on_event: Callable[[Event], None] | None = None) -> Iterator[Any]:
         """One pass over the sequence, from the first frame."""
         with self._condition:
             self._restart_requested = False
             self._finished = False
-            self._drop_requests.clear()
+            self._moves.clear()
             self._pace_anchor = None
-        script = dict(self.drops)
-        dropping: _DropRequest | None = None
-        dropped: list[Any] = []
-        for frame in self.sequence:
-            if frame.index in script:
-                self.drop_next(script.pop(frame.index), source="script")
-            if not self._wait_until_frame_may_pass():
-                break
+            self._in_pass = True
+            self._start_the_clock()
+        script = _Script(self.drops, self.jumps)
+        reader = _Reader(self.sequence)
+        cursor, last = 0, -1  # the positions of the next frame and of the last one handed out (-1: none yet)
+        try:
+            while True:
+                if not self._wait_until_frame_may_pass():
+                    return
+                cursor = self._move(cursor, last, script, on_event)
+                if cursor >= len(self._indices):
+                    with self._condition:
+                        self._finished = True
+                    return
+                frame = reader.read(cursor)
+                self._pace(frame.timestamp)
+                with self._condition:
+                    if self._steps > 0:
+                        self._steps -= 1
+                yield frame
+                last, cursor = cursor, cursor + 1
+                script.handed_out(frame.index, self)
+        finally:
+            reader.close()
             with self._condition:
-                if dropping is None and self._drop_requests:
-                    dropping = self._drop_requests.popleft()
-                if dropping is not None:
-                    dropped.append(frame)
-                    if len(dropped) < dropping.count:
-                        continue
-            if dropping is not None:
-                _announce(on_drop, dropping, dropped)
-                dropping, dropped = None, []
-                continue
-            self._pace(frame.timestamp)
+                self._stop_the_clock()
+                self._in_pass = False
+
+    def _move(self, cursor: int, last: int, script: "_Script", on_event) -> int:
+        """Apply the moves requested so far (a scripted drop of the frame at the cursor first), each announced."""
+        script.reached(self._frame_at(cursor), self)
+        while True:
             with self._condition:
-                if self._steps > 0:
-                    self._steps -= 1
-            yield frame
-        else:
-            with self._condition:
-                self._finished = True
-        if dropping is not None and dropped:
-            _announce(on_drop, dropping, dropped)  # the drop ran past the end (or the pass was cut short)
+                if not self._moves:
+                    return cursor
+                move = self._moves.popleft()
+                self._pace_anchor = None  # dataset time jumps: pacing starts afresh
+            target = self._target(move, cursor, last)
+            if on_event is not None and target != cursor:
+                on_event(self._announcement(move, cursor, last, target))
+            cursor = target
+            script.reached(self._frame_at(cursor), self)
+
+    def _frame_at(self, position: int) -> int | None:
+        return self._indices[position] if position < len(self._indices) else None
+
+    def _target(self, move: _Move, cursor: int, last: int) -> int:
+        if move.kind is EventKind.FRAMES_DROPPED:
+            return min(cursor + move.count, len(self._indices))
+        if move.target is not None:
+            return self._positions[move.target]
+        return max(last - move.count, 0)
+
+    def _announcement(self, move: _Move, cursor: int, last: int, target: int) -> Event:
+        if move.kind is EventKind.FRAMES_DROPPED:
+            first, final = cursor, target - 1
+            details = {"count": target - cursor, "requested": move.count, "first_frame": self._indices[first],
+                       "last_frame": self._indices[final], "source": move.source}
+            return Event(move.kind, self._indices[first], self._timestamps[first], details)
+        details = {"from_frame": self._indices[last] if last >= 0 else None, "to_frame": self._indices[target],
+                   "direction": "backward" if target <= last else "forward",
+                   "frames": abs(target - last - 1),  # skipped (forward) or played again (backward)
+                   "source": move.source}
+        where = max(last, 0)  # the frame after which it jumped
+        return Event(move.kind, self._indices[where], self._timestamps[where], details)
 
     def _wait_until_frame_may_pass(self) -> bool:
         """Wait while paused (unless a step is pending); False when the pass must end (stop or restart)."""
@@ -217,25 +307,58 @@ class Player:
         return anchor is None or anchor[0] != anchor_wall or self._stopped or self._restart_requested
 
 
-def _announce(on_drop: Callable[[Event], None] | None, request: _DropRequest, frames: list[Any]) -> None:
-    if on_drop is None:
-        return
-    first, last = frames[0], frames[-1]
-    on_drop(
-        Event(
-            EventKind.FRAMES_DROPPED,
-            first.index,
-            first.timestamp,
-            {"count": len(frames), "requested": request.count, "first_frame": first.index,
-             "last_frame": last.index, "source": request.source},
-        )
-    )
+class _Script:
+    """The scripted moves of one pass, each fired once: a drop when its frame is reached, a jump once its frame
+    has been handed out (so a frame played again does not jump again)."""
+
+    def __init__(self, drops: list[tuple[int, int]], jumps: list[tuple[int, int]]):
+        self.drops = {frame: deque() for frame, _ in drops}
+        for frame, count in drops:
+            self.drops[frame].append(count)
+        self.jumps = {frame: deque() for frame, _ in jumps}
+        for frame, target in jumps:
+            self.jumps[frame].append(target)
+
+    def reached(self, frame: int | None, player: Player) -> None:
+        if self.drops.get(frame):
+            player.drop_next(self.drops[frame].popleft(), source="script")
+
+    def handed_out(self, frame: int, player: Player) -> None:
+        if self.jumps.get(frame):
+            player.jump_to(self.jumps[frame].popleft(), source="script")
 
 
-def _validated_drops(drops: Iterable[tuple[int, int]]) -> list[tuple[int, int]]:
-    validated = []
-    for index, count in drops:
-        if index < 0 or count < 1:
-            raise ValueError(f"a drop needs a frame index >= 0 and a count >= 1, got {index}:{count}")
-        validated.append((int(index), int(count)))
+class _Reader:
+    """Frames from a position on, read ahead by the sequence's own iterator, which starts afresh where a move lands."""
+
+    def __init__(self, sequence):
+        self.sequence = sequence
+        self._frames: Iterator[Any] | None = None
+        self._next = 0  # the position the iterator yields next
+
+    def read(self, position: int):
+        if self._frames is None or position != self._next:
+            self.close()
+            self._frames = iter(self.sequence if position == 0 else self.sequence.cut(position))
+        self._next = position + 1
+        return next(self._frames)
+
+    def close(self) -> None:
+        if self._frames is not None and hasattr(self._frames, "close"):
+            self._frames.close()  # stops the read-ahead thread
+        self._frames = None
+
+
+def _at_least_one(count: int, what: str) -> int:
+    count = int(count)
+    if count < 1:
+        raise ValueError(f"{what} needs a count >= 1, got {count}")
+    return count
+
+
+def _pairs(pairs: Iterable[tuple[int, int]], requirement: str, minimum: tuple[int, int]) -> list[tuple[int, int]]:
+    validated = [(int(first), int(second)) for first, second in pairs]
+    for first, second in validated:
+        if first < minimum[0] or second < minimum[1]:
+            raise ValueError(f"{requirement}, got {first}:{second}")
     return validated

@@ -2,6 +2,7 @@
 
 It is a Sink like the others, so it sees exactly what the odometry reports. On a terminal the line is
 redrawn in place; in a log file (not a terminal) a plain line is written every tenth of the sequence.
+Its frame rate (``FrameRate``) is the one the viser page shows: frames over the player's playing time.
 """
 
 from __future__ import annotations
@@ -18,6 +19,26 @@ LOG_LINES_PER_RUN = 10  # without a terminal: a line every 10 % of the sequence
 BAR_WIDTH = 24
 
 
+class FrameRate:
+    """Frames per second of a pass over ``clock``: the player's playing time (``Player.playing_time``), so that a
+    pause, or the wait for a browser, does not count; the terminal, the page and metrics.json agree."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic):
+        self.clock = clock
+        self.restart()
+
+    def restart(self) -> None:
+        self.started = self.clock()
+        self.frames = 0
+
+    def count(self) -> None:
+        self.frames += 1
+
+    def fps(self) -> float:
+        elapsed = self.clock() - self.started
+        return self.frames / elapsed if elapsed > 0 else 0.0
+
+
 class ProgressBar:
     def __init__(self, total_frames: int, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic):
         self.total_frames = max(int(total_frames), 1)
@@ -27,8 +48,8 @@ class ProgressBar:
         self.restart()
 
     def restart(self) -> None:
-        self.started = self.clock()
-        self.frames = 0  # frames the odometry processed
+        """A new pass (Restart on the page): count from zero."""
+        self.rate = FrameRate(self.clock)  # frames the odometry processed, and how fast
         self.tracked = 0
         self.passed = 0  # frames processed, skipped or dropped: how far into the sequence we are
         self.last_event = ""
@@ -39,7 +60,7 @@ class ProgressBar:
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
-        self.frames += 1
+        self.rate.count()
         self.passed += 1
         self.tracked += bool(result.tracked)
         self._draw()
@@ -47,6 +68,9 @@ class ProgressBar:
     def on_event(self, event: Event) -> None:
         if event.kind is EventKind.FRAMES_DROPPED:
             self.passed += int(event.details.get("count", 0))
+        elif event.kind is EventKind.FRAMES_JUMPED:  # back: the frames played again are ahead once more
+            backward = event.details.get("direction") == "backward"
+            self.passed += (-1 if backward else 1) * int(event.details.get("frames", 0))
         elif event.kind is EventKind.FRAME_SKIPPED:
             self.passed += 1
         if event.kind is not EventKind.TRACKING_OK:
@@ -66,11 +90,10 @@ class ProgressBar:
     def line(self) -> str:
         fraction = min(self.passed / self.total_frames, 1.0)
         filled = int(round(fraction * BAR_WIDTH))
-        elapsed = max(self.clock() - self.started, 1e-9)
-        tracked = self.tracked / self.frames if self.frames else 0.0
+        tracked = self.tracked / self.rate.frames if self.rate.frames else 0.0
         text = (
             f"[{'#' * filled}{'.' * (BAR_WIDTH - filled)}] {self.passed}/{self.total_frames} frames"
-            f" | {self.frames / elapsed:5.1f} fps | tracked {100 * tracked:3.0f}%"
+            f" | {self.rate.fps():5.1f} fps | tracked {100 * tracked:3.0f}%"
         )
         return text + (f" | {self.last_event}" if self.last_event else "")
 

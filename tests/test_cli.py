@@ -175,6 +175,24 @@ def test_dropped_frames_never_reach_the_odometry_and_an_event_says_so(dataset, t
     assert json.loads((out / "metrics.json").read_text())["dropped_frames"] == 4
 
 
+def test_a_backward_jump_replays_frames_and_the_trajectory_stays_a_valid_tum_file(dataset, tmp_path, scripted,
+                                                                                   capsys):
+    out = tmp_path / "results"
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--jump", "8:4", "--drop", "10:1")
+    assert code == 0
+    assert scripted[0][-1].seen == [0, 1, 2, 3, 4, 5, 6, 7, 8, 4, 5, 6, 7, 8, 9, 11]
+    jumps = [e for e in events_of(out) if e["kind"] == "frames_jumped"]
+    assert [(e["frame"], e["details"]["to_frame"], e["details"]["direction"]) for e in jumps] == [(8, 4, "backward")]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["processed_frames"] == 16 and metrics["jumps"] == [{"from_frame": 8, "to_frame": 4}]
+    # One line per timestamp, the latest pose: frames 2-11 less the dropped 10 (the front end poses from its 3rd frame).
+    assert len(read_trajectory(out / "trajectory.tum")) == metrics["posed_frames"] == 9
+    assert "1 frame dropped, 1 jump (8 -> 4)" in stdout
+    code, evaluation, _ = run_cli(capsys, "eval", out / "trajectory.tum", out / "groundtruth.tum", "--json")
+    assert code == 0 and json.loads(evaluation)["ate"]["rmse"] == pytest.approx(metrics["evaluation"]["ate"]["rmse"],
+                                                                             abs=1e-6)
+
+
 def test_start_and_end_cut_the_sequence_and_keep_frame_numbers(dataset, tmp_path, scripted, capsys):
     code, _, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--quiet", "--start", "4", "--end", "9")
     assert code == 0
@@ -261,6 +279,10 @@ def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request
         (["run", "{dataset}", "--set", "klt.nonsense=1"], "unknown config key"),
         (["run", "{dataset}", "--drop", "5"], "FRAME:COUNT"),
         (["run", "{dataset}", "--drop", "40:2"], "not among the frames played (0..11)"),
+        (["run", "{dataset}", "--jump", "5"], "FRAME:TARGET"),
+        (["run", "{dataset}", "--jump", "5:5"], "FRAME and TARGET must be >= 0 and differ"),
+        (["run", "{dataset}", "--jump", "40:2"], "--jump 40:2: frame 40 is not among the frames played (0..11)"),
+        (["run", "{dataset}", "--jump", "5:40"], "--jump 5:40: frame 40 is not in the sequence played (0..11)"),
         (["run", "{dataset}", "--viser", "--port", "70000"], "between 1 and 65535"),
         (["run", "{dataset}", "--format", "nonsense"], "invalid choice: 'nonsense'"),
         (["run", "{dataset}", "--set", "direct.tracker.huber_threshold=abc"], "cannot read 'abc' as a number"),
@@ -441,15 +463,17 @@ def test_gt_option_gives_ground_truth_to_ones_own_data(dataset, tmp_path, script
 
 
 def test_viser_listens_on_this_machine_only_unless_asked(dataset, tmp_path, scripted, capsys, monkeypatch):
+    """... and plays at the sequence's frame rate, from when a browser opens the page."""
     import app.sinks.viser_view
 
-    hosts = []
+    hosts, playback = [], []
 
     class FakeView:
         url = "http://fake"
 
-        def __init__(self, camera, player, ground_truth=None, host="?", port=0):
+        def __init__(self, camera, player, ground_truth=None, host="?", port=0, wait_for_browser=False):
             hosts.append(host)
+            playback.append((player.speed, wait_for_browser))
             player.stop()  # the page would be the way to quit
 
         def on_frame(self, frame, result): ...
@@ -462,6 +486,7 @@ def test_viser_listens_on_this_machine_only_unless_asked(dataset, tmp_path, scri
         code, _, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--quiet", "--viser", *extra)
         assert code == 0
     assert hosts == ["127.0.0.1", "0.0.0.0"]
+    assert playback == [(1.0, True)] * 2
 
 
 # ------------------------------------------------------------------------------------------ eval, info

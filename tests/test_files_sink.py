@@ -130,3 +130,20 @@ def test_ground_truth_file_is_written_when_there_is_one(sink):
     np.testing.assert_allclose(written.poses, truth.poses, atol=1e-6)
     sink.write_ground_truth(None)
     assert not (sink.out_dir / GROUND_TRUTH_FILE).exists()
+
+
+def test_frames_played_again_keep_one_line_per_timestamp_their_latest_outcome(sink):
+    """A backward jump: frames 3-5 are processed again; frame 4 gets another pose, frame 5 none this time."""
+    feed(sink)  # frames 0-7, posed from 2
+    moved = pose(4) @ se3_exp(np.full(6, 0.02))
+    for i, T in ((3, pose(3)), (4, moved), (5, None)):
+        sink.on_frame(None, FrameResult(i, result(i).timestamp, T, T is not None))
+    trajectory = read_trajectory(sink.out_dir / TRAJECTORY_FILE)  # strictly increasing timestamps, or it raises
+    expected = {2: pose(2), 3: pose(3), 4: moved, 6: pose(6), 7: pose(7)}
+    np.testing.assert_allclose(trajectory.timestamps, [result(i).timestamp for i in expected], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(trajectory.poses, list(expected.values()), atol=1e-6)
+    np.testing.assert_allclose(sink.estimate().poses, trajectory.poses, atol=1e-6)
+    sink.on_frame(None, result(8))  # playing on past the latest frame appends again
+    assert len(read_trajectory(sink.out_dir / TRAJECTORY_FILE)) == 6
+    frames = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
+    assert frames["frame"].tolist() == [*range(8), 3, 4, 5, 8]  # a line per processing, in processing order

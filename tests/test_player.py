@@ -1,4 +1,4 @@
-"""The Player: frames in order, scripted and live drops, pause/step, pacing, restart and stop."""
+"""The Player: frames in order, scripted and live drops and jumps, pause/step, pacing, restart and stop."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass
 
 import pytest
+from fake_sequence import FakeSequence
 
 from app.player import Player
 from vo_core.events import EventKind
@@ -22,13 +23,13 @@ class FakeFrame:
     timestamp: float
 
 
-def frames(count: int, first_index: int = 0) -> list[FakeFrame]:
-    return [FakeFrame(i, i / RATE_HZ) for i in range(first_index, first_index + count)]
+def frames(count: int, first_index: int = 0) -> FakeSequence:
+    return FakeSequence(FakeFrame(i, i / RATE_HZ) for i in range(first_index, first_index + count))
 
 
 def play_all(player: Player) -> tuple[list[int], list]:
     events = []
-    seen = [frame.index for frame in player.play(on_drop=events.append)]
+    seen = [frame.index for frame in player.play(on_event=events.append)]
     return seen, events
 
 
@@ -43,7 +44,7 @@ class Consumer:
         self.thread.start()
 
     def _run(self) -> None:
-        for frame in self.player.play(on_drop=self.events.append):
+        for frame in self.player.play(on_event=self.events.append):
             self.received.put(frame.index)
         self.received.put(None)
 
@@ -87,7 +88,7 @@ def test_a_drop_past_the_end_reports_the_frames_it_could_drop():
 def test_live_drop_acts_at_the_next_frame_like_a_scripted_one():
     player = Player(frames(12))
     seen, events = [], []
-    for frame in player.play(on_drop=events.append):
+    for frame in player.play(on_event=events.append):
         seen.append(frame.index)
         if frame.index == 2:
             player.drop_next(3)  # a click on the page while frame 2 is being tracked
@@ -204,3 +205,79 @@ def test_interrupt_takes_no_lock():
     interrupting.join(timeout=1.0)
     release.set()
     assert not interrupting.is_alive() and player.interrupted
+
+
+# ------------------------------------------------------------------------------------ jumps
+
+
+def test_a_backward_jump_replays_the_frames_since_its_target_once():
+    seen, events = play_all(Player(frames(12), jumps=[(7, 3)]))
+    assert seen == list(range(8)) + list(range(3, 12))  # frame 7 is reached again and does not jump again
+    assert [e.kind for e in events] == [EventKind.FRAMES_JUMPED]
+    assert (events[0].frame_index, events[0].timestamp) == (7, 7 / RATE_HZ)
+    assert events[0].details == {"from_frame": 7, "to_frame": 3, "direction": "backward", "frames": 5,
+                                 "source": "script"}
+
+
+def test_a_forward_jump_skips_frames_without_reading_them():
+    sequence = frames(12, first_index=100)  # frame numbers of a sequence cut to start at frame 100
+    seen, events = play_all(Player(sequence, jumps=[(103, 108)]))
+    assert seen == [100, 101, 102, 103] + list(range(108, 112))
+    assert sequence.reads == seen
+    assert events[0].details == {"from_frame": 103, "to_frame": 108, "direction": "forward", "frames": 4,
+                                 "source": "script"}
+
+
+def test_drops_and_jumps_are_one_mechanism_each_scripted_move_once_per_pass():
+    seen, events = play_all(Player(frames(10), drops=[(2, 2)], jumps=[(6, 1), (6, 8)]))
+    # 2-3 dropped; after 6 back to 1 (2 is not dropped again); after 6 again on to 8 (the second jump from 6).
+    assert seen == [0, 1, 4, 5, 6, 1, 2, 3, 4, 5, 6, 8, 9]
+    assert [(e.kind, e.frame_index) for e in events] == [
+        (EventKind.FRAMES_DROPPED, 2), (EventKind.FRAMES_JUMPED, 6), (EventKind.FRAMES_JUMPED, 6)]
+    assert [e.details.get("to_frame") for e in events[1:]] == [1, 8]
+
+
+def test_live_jump_back_continues_before_the_last_frame_handed_out():
+    player = Player(frames(10))
+    seen, events = [], []
+    for frame in player.play(on_event=events.append):
+        seen.append(frame.index)
+        if len(seen) == 7:  # frame 6, the first time
+            player.jump_back(4)  # a click on the page while frame 6 is being tracked
+    assert seen == list(range(7)) + list(range(2, 10))
+    assert events[0].details == {"from_frame": 6, "to_frame": 2, "direction": "backward", "frames": 5,
+                                 "source": "live"}
+
+
+def test_a_jump_back_stops_at_the_first_frame():
+    player = Player(frames(6))
+    seen = []
+    for frame in player.play():
+        seen.append(frame.index)
+        if len(seen) == 2:
+            player.jump_back(50)
+    assert seen == [0, 1, 0, 1, 2, 3, 4, 5]
+
+
+@pytest.mark.parametrize("jump", [(-1, 2), (3, -1)])
+def test_invalid_scripted_jumps_are_refused(jump):
+    with pytest.raises(ValueError, match="jump"):
+        Player(frames(5), jumps=[jump])
+
+
+def test_a_jump_to_a_frame_outside_the_sequence_is_refused():
+    with pytest.raises(ValueError, match="not in the sequence"):
+        Player(frames(5)).jump_to(9)
+
+
+def test_playing_time_leaves_out_pauses():
+    player = Player(frames(40))
+    player.speed = 4.0  # 40 frames at 20 Hz: 0.5 s of playing
+    consumer = Consumer(player)
+    assert consumer.next() == 0
+    player.pause()
+    time.sleep(0.5)
+    player.resume()
+    while consumer.next() is not None:
+        pass
+    assert 0.4 < player.playing_time() < 0.8  # the 0.5 s pause is not in it

@@ -1,4 +1,5 @@
-"""The Rerun sink: a short synthetic run into a .rrd, read back with rerun.chunk.RrdReader."""
+"""The Rerun sink: a short synthetic run with a divergence and a recovery into a .rrd, read back with
+rerun.chunk.RrdReader."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ rr = pytest.importorskip("rerun")
 
 from app.sinks import rerun_sink as sink_module  # noqa: E402
 from app.sinks.rerun_sink import RerunSink  # noqa: E402
+from app.sinks.scene import PLOT_LANES  # noqa: E402
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot  # noqa: E402
 from vo_core.geometry.camera import PinholeCamera  # noqa: E402
 from vo_core.geometry.lie import sim3, so3_exp, transform_points  # noqa: E402
@@ -21,7 +23,11 @@ CAMERA = PinholeCamera(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59
 FRAMES = 12
 LOST_FRAME = 5  # no pose: tracking failed there
 KEYFRAMES = (0, 4, 8)
-MATCHES = 7  # feature matches drawn into each frame
+RECOVERY_FRAME = 7  # a divergence, then a recovery from the feature map: its matches, outliers among them
+RECOVERY_INLIERS = np.array([True, True, False, True, False, True, True])
+FEATURE_KEYFRAME = 8  # the feature map grows: its new matches (all inliers)
+NEW_MATCHES = 5
+THRESHOLD = 1.1  # the divergence test's 1 + epsilon
 PERIOD_S = 0.05
 # The ground truth is the estimate under this similarity: once aligned it must fall back onto the estimate.
 S_GT_EST = sim3(2.5, so3_exp(np.array([0.1, -0.3, 0.2])), np.array([1.0, -2.0, 0.5]))
@@ -47,22 +53,47 @@ def synthetic_image(index: int) -> np.ndarray:
     return image
 
 
+def divergence_ratio(index: int) -> float:
+    return 1.6 if index == RECOVERY_FRAME else 0.75
+
+
+def frame_events(i: int, timestamp: float) -> list[Event]:
+    events = [Event(EventKind.KEYFRAME_ADDED, i, timestamp)] if i in KEYFRAMES else []
+    if i == 0:
+        events.append(Event(EventKind.INITIALIZATION_SUCCEEDED, i, timestamp, {"points": 120}))
+    if i == LOST_FRAME:
+        events.append(Event(EventKind.TRACKING_FAILED, i, timestamp, {"reason": "too few points"}))
+    if i == RECOVERY_FRAME:
+        events += [Event(kind, i, timestamp) for kind in (EventKind.DIVERGENCE_DETECTED, EventKind.RECOVERY_TRIED,
+                                                          EventKind.RECOVERY_SUCCEEDED)]
+    if i == FEATURE_KEYFRAME:
+        events.append(Event(EventKind.FEATURE_KEYFRAME_ADDED, i, timestamp))
+    return events
+
+
+def frame_matches(i: int, rng) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(matches, inlier flags): a recovery's with outliers, a feature keyframe's new ones (all inliers), else none."""
+    if i == RECOVERY_FRAME:
+        return rng.uniform(0, 100, (len(RECOVERY_INLIERS), 4)), RECOVERY_INLIERS
+    if i == FEATURE_KEYFRAME:
+        return rng.uniform(0, 100, (NEW_MATCHES, 4)), None
+    return None, None
+
+
 def run_synthetic(sink: RerunSink) -> None:
     rng = np.random.default_rng(3)
     for i in range(FRAMES):
         timestamp = i * PERIOD_S
         lost = i == LOST_FRAME
-        events = [Event(EventKind.KEYFRAME_ADDED, i, timestamp)] if i in KEYFRAMES else []
-        if i == 0:
-            events.append(Event(EventKind.INITIALIZATION_SUCCEEDED, i, timestamp, {"points": 120}))
-        if lost:
-            events.append(Event(EventKind.TRACKING_FAILED, i, timestamp, {"reason": "too few points"}))
+        events = frame_events(i, timestamp)
         for event in events:
             sink.on_event(event)
+        matches, inlier = frame_matches(i, rng)
         result = FrameResult(
             i, timestamp, None if lost else camera_pose(i), tracked=not lost, is_keyframe=i in KEYFRAMES,
-            rmse_before=None if lost else 8.0, rmse_after=None if lost else 6.0, num_inliers=40 + i,
-            points_2d=rng.uniform(0, 100, (30, 2)), matches_2d=rng.uniform(0, 100, (MATCHES, 4)),
+            rmse_before=None if lost else 8.0, rmse_after=None if lost else 8.0 * divergence_ratio(i),
+            num_inliers=40 + i, points_2d=rng.uniform(0, 100, (30, 2)), matches_2d=matches, matches_inlier=inlier,
+            divergence_ratio=None if lost else divergence_ratio(i), divergence_threshold=THRESHOLD,
             timings_ms={"track": 1.5, "total": 2.0}, events=events,
         )
         sink.on_frame(SimpleNamespace(index=i, timestamp=timestamp, image=synthetic_image(i)), result)
@@ -99,9 +130,11 @@ def column(chunks: list, name: str) -> list:
 
 def test_entities_are_the_documented_ones(recording):
     expected = {sink_module.CAMERA, sink_module.IMAGE, sink_module.TRACKED_PIXELS, sink_module.MATCHES,
-                sink_module.ESTIMATE, sink_module.RECENT, sink_module.GROUND_TRUTH, sink_module.DIRECT_POINTS, sink_module.FEATURE_POINTS,
-                sink_module.KEYFRAMES, sink_module.EVENT_MARKERS, sink_module.EVENT_LOG,
-                "plots/tracking/rmse_ratio", "plots/counts/inliers", "plots/timing_ms/track"}
+                sink_module.ESTIMATE, sink_module.RECENT, sink_module.GROUND_TRUTH, sink_module.DIRECT_POINTS,
+                sink_module.FEATURE_POINTS, sink_module.EVENT_LOG, sink_module.DIVERGENCE_RATIO,
+                sink_module.DIVERGENCE_THRESHOLD, "world/keyframes/4", "world/events/recovery_succeeded",
+                "plots/divergence/events/divergence", "plots/tracking/rmse_after", "plots/counts/inliers",
+                "plots/timing_ms/track"}
     assert {"/" + entity for entity in expected} <= set(recording)
 
 
@@ -139,15 +172,36 @@ def test_events_are_logged_with_levels(recording):
     assert lines["frame 0 initialization_succeeded (points=120)"] == "INFO"
     assert lines["frame 5 tracking_failed (reason=too few points)"] == "ERROR"
     assert lines["frame 12 frames_dropped (count=3)"] == "INFO"
-    assert sum(text[0].endswith("keyframe_added") for text in texts) == len(KEYFRAMES)
+    assert sum(text[0].endswith(" keyframe_added") for text in texts) == len(KEYFRAMES)
 
 
-def test_event_markers_sit_on_the_trajectory(recording):
-    markers = column(recording["/world/events"], "Points3D:positions")[-1]
-    labels = column(recording["/world/events"], "Points3D:labels")[-1]
-    assert labels == ["initialization_succeeded", "tracking_failed"]  # keyframes are routine: not marked
-    # The failure at the lost frame is marked where the camera last was.
-    np.testing.assert_allclose(markers[1], camera_pose(LOST_FRAME - 1)[:3, 3], atol=1e-6)
+def test_event_markers_sit_on_the_trajectory_one_entity_per_kind(recording):
+    marked = {path.removeprefix("/world/events/") for path in recording if path.startswith("/world/events/")}
+    # Keyframes are routine: not marked.
+    assert marked == {"initialization_succeeded", "tracking_failed", "divergence_detected", "recovery_tried",
+                      "recovery_succeeded", "frames_dropped"}
+    # The failure at the lost frame is marked where the camera last was, the recovery where it put the camera.
+    failure = column(recording["/world/events/tracking_failed"], "Points3D:positions")[-1]
+    np.testing.assert_allclose(failure, [camera_pose(LOST_FRAME - 1)[:3, 3]], atol=1e-6)
+    recovery = column(recording["/world/events/recovery_succeeded"], "Points3D:positions")[-1]
+    np.testing.assert_allclose(recovery, [camera_pose(RECOVERY_FRAME)[:3, 3]], atol=1e-6)
+    colors = {kind: column(recording[f"/world/events/{kind}"], "Points3D:colors")[-1][0] for kind in marked}
+    assert len(set(colors.values())) == len(marked)  # each kind its own color
+
+
+def test_divergence_ratio_is_plotted_against_its_threshold_with_the_events_on_it(recording):
+    ratios = column(recording["/plots/divergence/ratio"], "Scalars:scalars")
+    posed = [i for i in range(FRAMES) if i != LOST_FRAME]
+    np.testing.assert_allclose(np.ravel(ratios), [divergence_ratio(i) for i in posed])
+    thresholds = column(recording["/plots/divergence/threshold"], "Scalars:scalars")
+    np.testing.assert_allclose(np.ravel(thresholds), THRESHOLD)
+    assert column(recording["/plots/divergence/threshold"], "frame") == list(range(FRAMES))
+    # Divergences (the tracking failure among them) and recoveries are markers on the plot, in lanes of their own.
+    lanes = {lane.name: lane for lane in PLOT_LANES}
+    assert column(recording["/plots/divergence/events/divergence"], "frame") == [LOST_FRAME, RECOVERY_FRAME]
+    assert column(recording["/plots/divergence/events/recovery"], "frame") == [RECOVERY_FRAME]
+    np.testing.assert_allclose(np.ravel(column(recording["/plots/divergence/events/recovery"], "Scalars:scalars")),
+                               lanes["recovery"].height)
 
 
 def test_ground_truth_is_aligned_onto_the_estimate(recording):
@@ -158,19 +212,55 @@ def test_ground_truth_is_aligned_onto_the_estimate(recording):
 
 def test_full_path_at_keyframes_and_scalars(recording):
     assert column(recording["/world/trajectory/estimate"], "frame")[: len(KEYFRAMES)] == list(KEYFRAMES)
-    ratios = column(recording["/plots/tracking/rmse_ratio"], "Scalars:scalars")
-    np.testing.assert_allclose(np.ravel(ratios), 0.75)
     assert column(recording["/plots/counts/inliers"], "frame") == list(range(FRAMES))
-    colors = column(recording["/world/map/direct_points"], "Points3D:colors")[-1]
-    assert len(set(colors)) > 5  # colored by inverse depth, not one color
 
 
-def test_restart_starts_a_fresh_path(tmp_path):
-    sink = RerunSink(None, CAMERA)
-    for index in (0, 1, 2, 0, 1):  # a restart: the frames start over
+def test_both_clouds_in_colors_of_their_own(recording):
+    direct = column(recording["/world/map/direct_points"], "Points3D:colors")[-1]
+    features = column(recording["/world/map/feature_points"], "Points3D:colors")[-1]
+    assert len(column(recording["/world/map/direct_points"], "Points3D:positions")[-1]) == 50
+    assert len(column(recording["/world/map/feature_points"], "Points3D:positions")[-1]) == 20
+    assert len(set(direct)) > 5  # colored by inverse depth, not one color
+    assert len(set(features)) == 1 and not set(features) & set(direct)
+
+
+def test_each_keyframe_is_a_frustum(recording):
+    for index in KEYFRAMES:
+        chunks = recording[f"/world/keyframes/{index}"]
+        translation = column(chunks, "Transform3D:translation")[-1]
+        np.testing.assert_allclose(np.ravel(translation), camera_pose(index)[:3, 3], atol=1e-6)
+        intrinsics = [matrix for matrix in column(chunks, "Pinhole:image_from_camera") if matrix is not None]
+        np.testing.assert_allclose(np.reshape(intrinsics[-1], (3, 3)).T, CAMERA.K, atol=1e-4)
+        assert column(chunks, "frame")[0] == index  # appears when it became a keyframe
+
+
+def test_restart_is_a_new_recording_in_the_same_file(tmp_path):
+    path = tmp_path / "run.rrd"
+    sink = RerunSink(path, CAMERA, recording_name="bundled")
+    for index in range(3):
         sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
-    assert len(sink.path) == 2
+    first_id = sink.recording.get_recording_id()
+    sink.restart()
+    for index in range(2):
+        sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
+    assert len(sink.history) == 2
     sink.close()
+    recordings = rr.chunk.RrdReader(path).recordings()
+    assert [entry.recording_id for entry in recordings] == [sink.recording.get_recording_id()] != [first_id]
+    camera = [chunk for chunk in rr.chunk.RrdReader(path).stream().to_chunks() if chunk.entity_path == "/world/camera"]
+    assert column(camera, "frame") == [0, 1]  # the new pass alone
+
+
+def test_frames_played_again_go_on_along_the_step_timeline(tmp_path):
+    """A backward jump: frames 3-4 come again; the frame timeline goes back, the step timeline does not."""
+    path = tmp_path / "jump.rrd"
+    sink = RerunSink(path, CAMERA)
+    for index in (0, 1, 2, 3, 4, 3, 4):
+        sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
+    sink.close()
+    camera = [chunk for chunk in rr.chunk.RrdReader(path).stream().to_chunks() if chunk.entity_path == "/world/camera"]
+    rows = sorted(zip(column(camera, "step"), column(camera, "frame")))
+    assert rows == list(enumerate([0, 1, 2, 3, 4, 3, 4]))
 
 
 def test_recording_carries_the_default_blueprint(tmp_path):
@@ -221,7 +311,39 @@ def test_every_event_kind_has_a_style_and_failures_stand_out():
     assert EVENT_STYLES[EventKind.DIVERGENCE_DETECTED].level == "WARN"
 
 
-def test_matches_are_line_segments_on_every_frame(recording):
-    strips = [rows for rows in column(recording["/world/camera/image/matches"], "LineStrips2D:strips") if rows]
-    assert len(strips) == FRAMES
-    assert all(len(rows) == MATCHES and all(len(strip) == 2 for strip in rows) for rows in strips)
+def matches_by_frame(recording) -> dict[int, tuple]:
+    """Frame -> (strips, colors) of the matches entity; (None, None) where it was cleared."""
+    rows = {}
+    for chunk in recording["/world/camera/image/matches"]:
+        table = chunk.to_record_batch().to_pydict()
+        for index, frame in enumerate(table["frame"]):
+            rows[frame] = tuple(table.get(name, [None] * (index + 1))[index]
+                                for name in ("LineStrips2D:strips", "LineStrips2D:colors"))
+    return rows
+
+
+def test_matches_of_recoveries_and_feature_keyframes_inliers_and_outliers_apart(recording):
+    from app.sinks.scene import MATCH_INLIER_COLOR, MATCH_OUTLIER_COLOR
+
+    rows = matches_by_frame(recording)
+    assert set(rows) == {RECOVERY_FRAME, FEATURE_KEYFRAME, FEATURE_KEYFRAME + 1}  # logged where there are some
+    strips, colors = rows[RECOVERY_FRAME]
+    assert len(strips) == len(RECOVERY_INLIERS) and all(len(strip) == 2 for strip in strips)
+    rgba = [((color >> 24) & 255, (color >> 16) & 255, (color >> 8) & 255) for color in colors]
+    assert rgba == [MATCH_INLIER_COLOR if inlier else MATCH_OUTLIER_COLOR for inlier in RECOVERY_INLIERS]
+    strips, colors = rows[FEATURE_KEYFRAME]
+    assert len(strips) == NEW_MATCHES and len(set(colors)) == 1
+    assert rows[FEATURE_KEYFRAME + 1] == (None, None)  # cleared: the keyframe's lines do not linger
+
+
+def test_the_default_view_holds_the_whole_path_and_the_dense_map_not_the_far_points():
+    from app.sinks.scene import framing
+
+    rng = np.random.default_rng(0)
+    path = np.column_stack([np.linspace(-3.0, 3.0, 60), np.zeros(60), np.zeros(60)])
+    dense = rng.normal([0.0, 0.0, 2.0], 0.5, size=(2000, 3))
+    far = rng.normal([0.0, 0.0, 500.0], 50.0, size=(400, 3))  # one point in six, triangulated far away
+    view = framing(path, np.vstack([dense, far]))
+    assert view.size < 10.0  # the path is 6 long, the dense cloud 2 deep: not the 500 of the far points
+    assert np.all(np.linalg.norm(path - view.centre, axis=1) <= view.size / 2)  # the whole path in view
+    assert np.mean(np.linalg.norm(dense - view.centre, axis=1) <= view.size / 2) > 0.95

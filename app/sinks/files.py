@@ -2,7 +2,12 @@
 
 trajectory.tum, keyframes.tum, frames.csv and events.jsonl grow a line per frame or event, flushed at once (line
 buffering), so a run that fails or is interrupted still leaves complete files behind. config.yaml is written
-at the start. At the end, metrics.json, the final keyframes.tum, the ground truth of the run (groundtruth.tum) and
+at the start.
+
+A backward jump (``--jump``) plays frames again. frames.csv and events.jsonl keep a line per processing, in the
+order of processing; the TUM files keep one line per timestamp, in time order (TUM readers and evo require
+increasing timestamps): the outcome of the frame's latest processing, so a replayed frame's line is its new pose,
+and a frame that got no pose when played again loses its line. At the end, metrics.json, the final keyframes.tum, the ground truth of the run (groundtruth.tum) and
 the maps (map_direct.ply, map_features.ply) replace the old files atomically (write, then rename).
 """
 
@@ -45,6 +50,8 @@ class FilesSink:
         self.out_dir = Path(out_dir)
         self._timestamps: dict[int, float] = {}  # frame index -> timestamp, to date the final keyframe poses
         self._files: dict[str, Any] = {}
+        self._trajectory: PoseLines | None = None
+        self._keyframes: PoseLines | None = None
 
     def begin(self, config: Config) -> None:
         """Create the folder, start the line files afresh (each pass over the sequence) and write config.yaml."""
@@ -52,24 +59,24 @@ class FilesSink:
         self._timestamps.clear()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
-        self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in
-                       (TRAJECTORY_FILE, KEYFRAMES_FILE, FRAMES_FILE, EVENTS_FILE)}
-        self._files[TRAJECTORY_FILE].write(TUM_HEADER)
-        self._files[KEYFRAMES_FILE].write(TUM_HEADER)
+        self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in (FRAMES_FILE, EVENTS_FILE)}
         self._files[FRAMES_FILE].write(",".join(FRAMES_COLUMNS) + "\n")
+        self._trajectory = PoseLines(self.out_dir / TRAJECTORY_FILE)
+        self._keyframes = PoseLines(self.out_dir / KEYFRAMES_FILE)
         dump_config(config, self.out_dir / CONFIG_FILE)
+
+    def estimate(self) -> Trajectory:
+        """What trajectory.tum holds: the run's estimate, as ``fdmo eval`` reads it."""
+        return self._trajectory.trajectory()
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self._timestamps[result.frame_index] = result.timestamp
         self._files[FRAMES_FILE].write(frames_line(result) + "\n")
-        if result.T_world_cam is None:
-            return
-        line = tum_line(result.timestamp, result.T_world_cam) + "\n"
-        self._files[TRAJECTORY_FILE].write(line)
+        self._trajectory.record(result.timestamp, result.T_world_cam)
         if result.is_keyframe:
-            self._files[KEYFRAMES_FILE].write(line)
+            self._keyframes.record(result.timestamp, result.T_world_cam)
 
     def on_event(self, event: Event) -> None:
         self._files[EVENTS_FILE].write(to_json(event.to_json_dict()) + "\n")
@@ -85,12 +92,8 @@ class FilesSink:
     def write_keyframes(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Replace keyframes.tum by the keyframes' latest poses (a window optimization moves them)."""
         dated = sorted((self._timestamps[i], i) for i in keyframe_poses if i in self._timestamps)
-        if not dated:
-            return
-        self._files[KEYFRAMES_FILE].close()
-        keyframes = Trajectory(np.array([t for t, _ in dated]), np.array([keyframe_poses[i] for _, i in dated]))
-        write_trajectory_atomically(self.out_dir / KEYFRAMES_FILE, keyframes)
-        self._files[KEYFRAMES_FILE] = open(self.out_dir / KEYFRAMES_FILE, "a", buffering=1)
+        if dated:
+            self._keyframes.replace({timestamp: keyframe_poses[i] for timestamp, i in dated})
 
     def write_ground_truth(self, ground_truth: Trajectory | None) -> None:
         """groundtruth.tum: the poses the run is evaluated against (``fdmo plot`` and ``fdmo eval`` read it)."""
@@ -123,9 +126,56 @@ class FilesSink:
         write_text_atomically(self.out_dir / METRICS_FILE, to_json(metrics, indent=2) + "\n")
 
     def _close_files(self) -> None:
-        for handle in self._files.values():
+        for handle in [*self._files.values(), *filter(None, (self._trajectory, self._keyframes))]:
             handle.close()
         self._files = {}
+
+
+class PoseLines:
+    """A TUM file of one pose per timestamp, in time order, valid at every moment. A pose later than every line is
+    appended; one at an earlier time (a frame played again after a backward jump) takes that time's line, or removes
+    it when the frame got no pose this time, and the file is rewritten atomically (from lines kept formatted: a
+    rewrite is a join, not a formatting of every pose)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self._lines: dict[float, tuple[np.ndarray, str]] = {}  # timestamp -> (T_world_cam, its line)
+        self._latest = -np.inf
+        self._handle = open(path, "w", buffering=1)
+        self._handle.write(TUM_HEADER)
+
+    def record(self, timestamp: float, T_world_cam: np.ndarray | None) -> None:
+        """The outcome of processing the frame at ``timestamp``: its pose, or None (no pose)."""
+        if timestamp > self._latest:
+            if T_world_cam is not None:
+                self._latest = timestamp
+                self._lines[timestamp] = (T_world_cam, tum_line(timestamp, T_world_cam))
+                self._handle.write(self._lines[timestamp][1] + "\n")
+            return
+        if T_world_cam is not None:
+            self._lines[timestamp] = (T_world_cam, tum_line(timestamp, T_world_cam))
+        elif self._lines.pop(timestamp, None) is None:
+            return
+        self._rewrite()
+
+    def replace(self, poses: dict[float, np.ndarray]) -> None:
+        """The whole file anew: ``poses`` by timestamp."""
+        self._lines = {timestamp: (pose, tum_line(timestamp, pose)) for timestamp, pose in poses.items()}
+        self._latest = max(poses, default=-np.inf)
+        self._rewrite()
+
+    def trajectory(self) -> Trajectory:
+        times = sorted(self._lines)
+        return Trajectory(np.array(times), np.array([self._lines[t][0] for t in times]).reshape(-1, 4, 4))
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def _rewrite(self) -> None:
+        self._handle.close()
+        text = TUM_HEADER + "".join(self._lines[t][1] + "\n" for t in sorted(self._lines))
+        write_text_atomically(self.path, text)
+        self._handle = open(self.path, "a", buffering=1)
 
 
 def frames_line(result: FrameResult) -> str:

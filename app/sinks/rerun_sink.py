@@ -1,27 +1,37 @@
 """A Rerun recording (.rrd) of a run: what the odometry saw, estimated and decided, frame by frame.
 
-Everything is logged on two timelines, ``frame`` (the frame index in the original sequence) and ``time`` (the
-frame's timestamp in seconds), into a ``RecordingStream`` of its own (never Rerun's global stream), saved to
-a file with a default blueprint. Open it with ``rerun FILE.rrd``.
+Everything is logged on three timelines, ``frame`` (the frame index in the original sequence), ``time`` (the
+frame's timestamp in seconds) and ``step`` (the order in which the odometry processed the frames: after a
+backward jump, ``frame`` and ``time`` go back while ``step`` goes on, so the replay is on ``step`` beside the
+first playing), into a ``RecordingStream`` of its own (never Rerun's global stream), saved to a file with a
+default blueprint. Open it with ``rerun FILE.rrd``.
+
+Each pass is a recording of its own: ``restart()`` (Restart on the viser page) ends the recording of the pass
+played so far and starts a new one, with a new recording id, in the same file, which then holds the new pass as
+every other result file of the folder does (``recording_name`` gets " (pass N)").
 
 Entities (the 3D world is the estimate's: the first camera's frame, x right, y down, z forward):
 
     world/camera                    T_world_cam of each posed frame
     world/camera/image              pinhole (the frustum), the input image (JPEG) and
     world/camera/image/tracked      the pixels the method tracked (FrameResult.points_2d)
-    world/camera/image/matches      feature matches as lines into this frame (FrameResult.matches_2d)
+    world/camera/image/matches      the frame's feature matches as lines into it (a recovery's, a feature
+                                    keyframe's new ones): inliers violet, outliers red; cleared on frames without
     world/trajectory/estimate       the estimated path (LineStrips3D), relogged whole at keyframes ...
     world/trajectory/recent         ... and the frames since then, so that each frame logs a few points only
     world/trajectory/ground_truth   the ground truth, Sim(3)-aligned to the estimate, refitted at keyframes
     world/map/direct_points         the active window's points, colored by inverse depth (turbo, near red)
-    world/map/feature_points        the feature map's points
-    world/map/keyframes             keyframe centres
-    world/events                    a marker where each non-routine event happened, colored by kind
+    world/map/feature_points        the feature map's points (violet)
+    world/keyframes/<frame>         a frustum per keyframe: its pose (Transform3D) and a pinhole
+    world/events/<kind>             a marker where each non-routine event happened, one entity per kind
     events                          every event as a TextLog line (failures as WARN/ERROR)
-    plots/tracking/*, plots/counts/*, plots/timing_ms/*   scalars (rmse before/after and ratio, counts, ms)
+    plots/divergence/ratio, .../threshold   FDMO's divergence test: RMSE after/before against 1 + epsilon
+    plots/divergence/events/<lane>  divergences, recoveries, failed recoveries, drops and jumps as markers on that
+                                    plot, a row each (scene.PLOT_LANES)
+    plots/tracking/*, plots/counts/*, plots/timing_ms/*   scalars (rmse before/after, counts, ms per stage)
 
 Cost: one JPEG encode and four log calls per frame (~3 ms for 640x480 on one core); scalars are buffered and
-sent as columns, the whole path and the clouds only at keyframes.
+sent as columns, the whole path, the clouds and the keyframes only at keyframes.
 """
 
 from __future__ import annotations
@@ -36,19 +46,26 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from app.sinks.scene import (
+    DIVERGENCE_RATIO_COLOR,
+    DIVERGENCE_THRESHOLD_COLOR,
     ESTIMATE_COLOR,
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
-    MATCH_COLOR,
     OVERLAY_POINT_COLOR,
+    PLOT_LANES,
+    EventMarkers,
     Framing,
     GroundTruthOverlay,
     PathHistory,
+    PlotLane,
+    SceneScale,
     event_style,
     event_text,
     framing,
     inverse_depth_colors,
+    kind_style,
+    match_colors,
 )
 from vo_core.events import Event, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
@@ -56,6 +73,7 @@ from vo_core.trajectory import Trajectory
 
 FRAME_TIMELINE = "frame"
 TIME_TIMELINE = "time"
+STEP_TIMELINE = "step"
 
 CAMERA = "world/camera"
 IMAGE = "world/camera/image"
@@ -66,23 +84,24 @@ RECENT = "world/trajectory/recent"
 GROUND_TRUTH = "world/trajectory/ground_truth"
 DIRECT_POINTS = "world/map/direct_points"
 FEATURE_POINTS = "world/map/feature_points"
-KEYFRAMES = "world/map/keyframes"
+KEYFRAMES = "world/keyframes"
 EVENT_MARKERS = "world/events"
 EVENT_LOG = "events"
+DIVERGENCE_PLOTS = "plots/divergence"
+DIVERGENCE_RATIO = "plots/divergence/ratio"
+DIVERGENCE_THRESHOLD = "plots/divergence/threshold"
+DIVERGENCE_EVENTS = "plots/divergence/events"
 TRACKING_PLOTS = "plots/tracking"
 COUNT_PLOTS = "plots/counts"
 TIMING_PLOTS = "plots/timing_ms"
 
 JPEG_QUALITY = 75  # issue 6: about 5x smaller than raw images, at no cost in speed
 FULL_PATH_EVERY = 30  # frames: relog the whole path at least this often when no keyframe comes
-# The frustum's image plane sits at this fraction of the scene's extent (never nearer than the minimum), and is
-# resized only when the scene has grown or shrunk by FRUSTUM_RESIZE_FACTOR: monocular scale is arbitrary.
-FRUSTUM_FRACTION = 0.04
-MIN_FRUSTUM_DEPTH = 0.05
-FRUSTUM_RESIZE_FACTOR = 2.0
 POINT_RADIUS_UI = 1.5  # map points, in UI points (constant size on screen whatever the scale)
 MARKER_RADIUS_UI = 6.0
 PATH_RADIUS_UI = 1.5
+MATCH_RADIUS_PX = 0.75
+PLOT_MARKER_SIZE = 6.0
 
 
 class RerunSink:
@@ -98,138 +117,175 @@ class RerunSink:
         recording_name: str | None = None,
         jpeg_quality: int = JPEG_QUALITY,
     ):
+        self.file = None if path is None else Path(path)
         self.camera = camera
         self.jpeg_quality = jpeg_quality
         self.ground_truth = GroundTruthOverlay(ground_truth) if ground_truth is not None and len(ground_truth) else None
-        self.recording = rr.RecordingStream(application_id)
-        if recording_name:
-            self.recording.send_recording_name(recording_name)
-        if path is None:
+        self.application_id = application_id
+        self.recording_name = recording_name
+        self.passes = 0
+        self._start_recording()
+
+    def _start_recording(self) -> None:
+        """A new recording (a new recording id) for the next pass, and the state of a pass."""
+        self.passes += 1
+        self.recording = rr.RecordingStream(self.application_id)
+        if self.recording_name:
+            suffix = f" (pass {self.passes})" if self.passes > 1 else ""
+            self.recording.send_recording_name(self.recording_name + suffix)
+        if self.file is None:
             self.memory = self.recording.memory_recording()
         else:
-            self.recording.save(str(path), default_blueprint=default_blueprint())
+            self.recording.save(str(self.file), default_blueprint=default_blueprint())
         self.recording.log("world", rr.ViewCoordinates.RDF, static=True)
+        self._log_series_styles()
         self._scalars = _ScalarColumns()
-        self._start_pass()
-
-    def _start_pass(self) -> None:
-        """Forget the previous pass (after a restart the frames start over)."""
-        self.path = PathHistory()
+        self.history = PathHistory()
         self._full_path_length = 0  # poses in the last whole-path log
-        self._last_index: int | None = None
-        self._last_timestamp = 0.0
-        self._frustum_depth: float | None = None
-        self._pending_markers: list[Event] = []
-        self._markers: list[tuple[np.ndarray, Event]] = []
+        self._step = 0  # frames processed in this pass: the step of the next one
+        self._last: tuple[int, float, int] | None = None  # (frame index, timestamp, step) of the last frame
+        self._scale = SceneScale()
+        self._frustums: dict[str, float] = {}  # pinhole entity -> the image plane distance it was logged with
+        self._keyframes: dict[int, np.ndarray] = {}  # keyframe -> the pose logged
+        self._markers = EventMarkers()
+        self._plotted_lanes: set[str] = set()  # the lanes of the divergence plot with a series
+        self._matches_shown = False
         self._clouds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the latest direct, feature
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
-        if self._last_index is not None and result.frame_index <= self._last_index:
-            # A restart: the new pass is logged over the old one on the same timelines (latest wins).
-            self._scalars.send(self.recording)
-            self._start_pass()
-        self._set_time(result.frame_index, result.timestamp)
-        self._last_index, self._last_timestamp = result.frame_index, result.timestamp
+        self._last = (result.frame_index, result.timestamp, self._step)
+        self._set_time(*self._last)
         if result.T_world_cam is not None:
-            self.path.add(result.timestamp, result.T_world_cam)
-            self._log_camera(result.T_world_cam)
+            self.history.add(result.timestamp, result.T_world_cam)
+            self.recording.log(CAMERA, _transform(result.T_world_cam))
+            self._log_frustum(IMAGE, ESTIMATE_COLOR)
         if frame is not None and getattr(frame, "image", None) is not None:
-            self._log_image(frame.image, result.points_2d, result.matches_2d)
-        self._place_markers(result.T_world_cam)
+            self._log_image(frame.image, result.points_2d)
+        self._log_matches(result.matches_2d, result.matches_inlier)
+        self._log_markers(result.T_world_cam[:3, 3] if result.T_world_cam is not None
+                          else self.history.last_position())
         self._add_scalars(result)
-        if self._log_path(force_full=result.is_keyframe or self._frustum_depth is None):
-            self._size_frustum()
+        if self._log_path(force_full=result.is_keyframe):
             self._scalars.send(self.recording)
+        self._step += 1
 
     def on_event(self, event: Event) -> None:
-        self._set_time(event.frame_index, event.timestamp)
+        self._set_time(event.frame_index, event.timestamp, self._step)  # the step of the frame it comes before
         style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
-        if style.marked:
-            self._pending_markers.append(event)  # placed at the pose of the frame tracked next (or the last one)
+        self._markers.add(event)
 
     def on_map(self, snapshot: MapSnapshot) -> None:
-        if self._last_index is not None:
-            self._set_time(self._last_index, self._last_timestamp)
+        if self._last is not None:
+            self._set_time(*self._last)
         radii = rr.Radius.ui_points(POINT_RADIUS_UI)
         self._clouds = (snapshot.direct_points_world, snapshot.feature_points_world)
         if snapshot.direct_points_world is not None:
             colors = inverse_depth_colors(snapshot.direct_inverse_depths)
             self.recording.log(DIRECT_POINTS, rr.Points3D(snapshot.direct_points_world, colors=colors, radii=radii))
-            self._scalars.add(f"{COUNT_PLOTS}/direct_points", self._last_index, self._last_timestamp,
-                              len(snapshot.direct_points_world))
+            self._add_scalar(f"{COUNT_PLOTS}/direct_points", len(snapshot.direct_points_world))
         if snapshot.feature_points_world is not None:
             self.recording.log(
                 FEATURE_POINTS, rr.Points3D(snapshot.feature_points_world, colors=FEATURE_POINT_COLOR, radii=radii)
             )
-            self._scalars.add(f"{COUNT_PLOTS}/feature_points", self._last_index, self._last_timestamp,
-                              len(snapshot.feature_points_world))
-        if snapshot.keyframe_poses:
-            centres = np.array([pose[:3, 3] for pose in snapshot.keyframe_poses.values()])
-            self.recording.log(
-                KEYFRAMES, rr.Points3D(centres, colors=KEYFRAME_COLOR, radii=rr.Radius.ui_points(3.0))
-            )
+            self._add_scalar(f"{COUNT_PLOTS}/feature_points", len(snapshot.feature_points_world))
+        if self._scale.follow(self._view()):
+            self._frustums.clear()  # every frustum is logged again at the new size
+            self._log_frustum(IMAGE, ESTIMATE_COLOR)
+        self._log_keyframes(snapshot.keyframe_poses)
+
+    def restart(self) -> None:
+        """A new pass: the recording so far is finished, and a new one (a new recording id) starts in its place."""
+        self._finish_recording()
+        self._start_recording()
 
     def close(self) -> None:
+        self._finish_recording()
+
+    # ------------------------------------------------------------------------------------ parts
+
+    def _finish_recording(self) -> None:
+        self._log_markers(self.history.last_position())  # the events after the last frame
         self._log_path(force_full=True)
         self._scalars.send(self.recording)
-        view = framing(self.path.positions(), *self._clouds)
+        view = self._view()
         if view is not None:  # the default view, now that the scene's extent is known
             self.recording.send_blueprint(default_blueprint(view), make_active=True, make_default=True)
         self.recording.flush(timeout_sec=10.0)
         self.recording.disconnect()
 
-    # ------------------------------------------------------------------------------------ parts
+    def _view(self) -> Framing | None:
+        return framing(self.history.positions(), *self._clouds)
 
-    def _set_time(self, frame_index: int, timestamp: float) -> None:
+    def _set_time(self, frame_index: int, timestamp: float, step: int) -> None:
         self.recording.set_time(FRAME_TIMELINE, sequence=int(frame_index))
         self.recording.set_time(TIME_TIMELINE, duration=float(timestamp))
+        self.recording.set_time(STEP_TIMELINE, sequence=int(step))
 
-    def _log_camera(self, T_world_cam: np.ndarray) -> None:
-        self.recording.log(CAMERA, rr.Transform3D(translation=T_world_cam[:3, 3], mat3x3=T_world_cam[:3, :3]))
-
-    def _size_frustum(self) -> None:
-        """The pinhole, its image plane at a fraction of the scene's extent (checked with each whole path)."""
-        depth = max(FRUSTUM_FRACTION * self.path.extent(), MIN_FRUSTUM_DEPTH)
-        if self._frustum_depth is not None and (
-            1.0 / FRUSTUM_RESIZE_FACTOR < depth / self._frustum_depth < FRUSTUM_RESIZE_FACTOR
-        ):
+    def _log_frustum(self, entity: str, color: tuple[int, int, int]) -> None:
+        """The pinhole of ``entity``, its image plane at the scene's frustum size (logged again only when the
+        scene's size changed)."""
+        depth = self._scale.frustum
+        if self._frustums.get(entity) == depth:
             return
-        self._frustum_depth = depth
-        self.recording.log(IMAGE, rr.Pinhole(
+        self._frustums[entity] = depth
+        self.recording.log(entity, rr.Pinhole(
             image_from_camera=self.camera.K, resolution=[self.camera.width, self.camera.height],
-            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=depth, color=list(ESTIMATE_COLOR),
+            camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=depth, color=list(color),
         ))
 
-    def _log_image(self, image: np.ndarray, points_2d: np.ndarray | None, matches_2d: np.ndarray | None) -> None:
+    def _log_keyframes(self, keyframe_poses: dict[int, np.ndarray]) -> None:
+        """A frustum per keyframe, its pose logged when new or moved (the window optimization moves them); the
+        keyframes no longer in the map are cleared."""
+        for index in self._keyframes.keys() - keyframe_poses.keys():
+            self.recording.log(f"{KEYFRAMES}/{index}", rr.Clear(recursive=True))
+            self._frustums.pop(f"{KEYFRAMES}/{index}", None)
+            del self._keyframes[index]
+        for index, T_world_cam in keyframe_poses.items():
+            entity = f"{KEYFRAMES}/{index}"
+            if index not in self._keyframes or not np.array_equal(self._keyframes[index], T_world_cam):
+                self._keyframes[index] = np.array(T_world_cam)
+                self.recording.log(entity, _transform(T_world_cam))
+            self._log_frustum(entity, KEYFRAME_COLOR)
+
+    def _log_image(self, image: np.ndarray, points_2d: np.ndarray | None) -> None:
         # OpenCV's encoder: the same JPEG as rr.Image(...).compress(), in half the time.
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
         if ok:
             self.recording.log(IMAGE, rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"))
         tracked = np.zeros((0, 2)) if points_2d is None else np.asarray(points_2d).reshape(-1, 2)
         self.recording.log(TRACKED_PIXELS, rr.Points2D(tracked, colors=OVERLAY_POINT_COLOR, radii=1.5))
-        segments = np.zeros((0, 2, 2)) if matches_2d is None else np.asarray(matches_2d).reshape(-1, 2, 2)
-        self.recording.log(MATCHES, rr.LineStrips2D(segments, colors=MATCH_COLOR, radii=0.5))
+
+    def _log_matches(self, matches_2d: np.ndarray | None, inlier: np.ndarray | None) -> None:
+        """The frame's matches; a frame without any clears the last ones, so that they do not linger."""
+        if matches_2d is not None and len(matches_2d):
+            segments = np.asarray(matches_2d, dtype=float).reshape(-1, 2, 2)
+            self.recording.log(MATCHES, rr.LineStrips2D(segments, colors=match_colors(len(segments), inlier),
+                                                        radii=MATCH_RADIUS_PX))
+            self._matches_shown = True
+        elif self._matches_shown:
+            self.recording.log(MATCHES, rr.Clear(recursive=False))
+            self._matches_shown = False
 
     def _log_path(self, force_full: bool) -> bool:
         """The whole path at keyframes (and every FULL_PATH_EVERY frames), only its recent tail otherwise;
         True when the whole path was logged."""
-        if len(self.path) == 0:
+        if len(self.history) == 0:
             return False
-        full = force_full or len(self.path) - self._full_path_length >= FULL_PATH_EVERY
+        full = force_full or len(self.history) - self._full_path_length >= FULL_PATH_EVERY
         if full:
-            self._full_path_length = len(self.path)
-            self._log_strip(ESTIMATE, self.path.positions(), ESTIMATE_COLOR)
+            self._full_path_length = len(self.history)
+            self._log_strip(ESTIMATE, self.history.positions(), ESTIMATE_COLOR)
             self._log_ground_truth()
-        self._log_strip(RECENT, self.path.positions(start=max(self._full_path_length - 1, 0)), ESTIMATE_COLOR)
+        self._log_strip(RECENT, self.history.positions(start=max(self._full_path_length - 1, 0)), ESTIMATE_COLOR)
         return full
 
     def _log_ground_truth(self) -> None:
         if self.ground_truth is None:
             return
-        aligned = self.ground_truth.positions_in_estimate_frame(self.path.trajectory())
+        aligned = self.ground_truth.positions_in_estimate_frame(self.history.trajectory())
         if aligned is not None:
             self._log_strip(GROUND_TRUTH, aligned, GROUND_TRUTH_COLOR)
 
@@ -238,34 +294,54 @@ class RerunSink:
             entity, rr.LineStrips3D([positions], colors=color, radii=rr.Radius.ui_points(PATH_RADIUS_UI))
         )
 
-    def _place_markers(self, T_world_cam: np.ndarray | None) -> None:
-        """Markers of the events since the last frame, at this frame's pose (or the last pose known)."""
-        if not self._pending_markers or len(self.path) == 0:
-            return
-        where = (T_world_cam if T_world_cam is not None else self.path.poses[-1])[:3, 3]
-        self._markers += [(where, event) for event in self._pending_markers]
-        self._pending_markers = []
-        self.recording.log(EVENT_MARKERS, rr.Points3D(
-            np.array([position for position, _ in self._markers]),
-            colors=[event_style(event).color for _, event in self._markers],
-            labels=[event.kind.value for _, event in self._markers],
-            radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
-        ))
+    def _log_markers(self, position: np.ndarray | None) -> None:
+        """The events since the last frame, marked at ``position`` and in their lanes of the divergence plot."""
+        kinds = set(event.kind for event in self._markers.place(position))
+        for kind in kinds:
+            self.recording.log(f"{EVENT_MARKERS}/{kind.value}", rr.Points3D(
+                np.array(self._markers.positions[kind]), colors=kind_style(kind).color, labels=kind.value,
+                radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
+            ))
+        for lane in PLOT_LANES:
+            if kinds & set(lane.kinds):
+                self._plot_in_lane(lane)
+
+    def _plot_in_lane(self, lane: PlotLane) -> None:
+        series = f"{DIVERGENCE_EVENTS}/{lane.name}"
+        if lane.name not in self._plotted_lanes:
+            self._plotted_lanes.add(lane.name)
+            self.recording.log(series, rr.SeriesPoints(colors=lane.color, names=lane.name,
+                                                       marker_sizes=PLOT_MARKER_SIZE), static=True)
+        self._add_scalar(series, lane.height)
+
+    def _log_series_styles(self) -> None:
+        self.recording.log(DIVERGENCE_RATIO, rr.SeriesLines(colors=DIVERGENCE_RATIO_COLOR, names="RMSE after / before",
+                                                            widths=2.0), static=True)
+        self.recording.log(DIVERGENCE_THRESHOLD, rr.SeriesLines(colors=DIVERGENCE_THRESHOLD_COLOR,
+                                                                names="threshold 1 + epsilon", widths=1.0), static=True)
 
     def _add_scalars(self, result: FrameResult) -> None:
         values = {
+            DIVERGENCE_RATIO: result.divergence_ratio,
+            DIVERGENCE_THRESHOLD: result.divergence_threshold,
             f"{TRACKING_PLOTS}/rmse_before": result.rmse_before,
             f"{TRACKING_PLOTS}/rmse_after": result.rmse_after,
             f"{COUNT_PLOTS}/inliers": result.num_inliers,
             f"{COUNT_PLOTS}/tracked_pixels": None if result.points_2d is None else len(result.points_2d),
             **{f"{TIMING_PLOTS}/{stage}": milliseconds for stage, milliseconds in result.timings_ms.items()},
         }
-        if result.rmse_before and result.rmse_after is not None:
-            # FDMO 4.2.1: the divergence test compares this ratio with 1 + epsilon.
-            values[f"{TRACKING_PLOTS}/rmse_ratio"] = result.rmse_after / result.rmse_before
         for entity, value in values.items():
             if value is not None:
-                self._scalars.add(entity, result.frame_index, result.timestamp, value)
+                self._add_scalar(entity, value)
+
+    def _add_scalar(self, entity: str, value: float) -> None:
+        """A value at the last frame (the one being logged)."""
+        if self._last is not None:
+            self._scalars.add(entity, *self._last, value)
+
+
+def _transform(T_world_cam: np.ndarray) -> rr.Transform3D:
+    return rr.Transform3D(translation=T_world_cam[:3, 3], mat3x3=T_world_cam[:3, :3])
 
 
 class _ScalarColumns:
@@ -273,26 +349,29 @@ class _ScalarColumns:
     a log call costs ~0.3 ms, a dozen per frame would cost more than the rest of the sink."""
 
     def __init__(self) -> None:
-        self._rows: dict[str, list[tuple[int, float, float]]] = defaultdict(list)
+        self._rows: dict[str, list[tuple[int, float, int, float]]] = defaultdict(list)
 
-    def add(self, entity: str, frame_index: int, timestamp: float, value: float) -> None:
-        self._rows[entity].append((int(frame_index), float(timestamp), float(value)))
+    def add(self, entity: str, frame_index: int, timestamp: float, step: int, value: float) -> None:
+        self._rows[entity].append((int(frame_index), float(timestamp), int(step), float(value)))
 
     def send(self, recording: rr.RecordingStream) -> None:
         for entity, rows in self._rows.items():
-            frames, times, values = zip(*rows)
+            frames, times, steps, values = zip(*rows)
             recording.send_columns(
                 entity,
-                indexes=[rr.TimeColumn(FRAME_TIMELINE, sequence=frames), rr.TimeColumn(TIME_TIMELINE, duration=times)],
+                indexes=[rr.TimeColumn(FRAME_TIMELINE, sequence=frames), rr.TimeColumn(TIME_TIMELINE, duration=times),
+                         rr.TimeColumn(STEP_TIMELINE, sequence=steps)],
                 columns=rr.Scalars.columns(scalars=values),
             )
         self._rows.clear()
 
 
 def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
-    """The 3D world on the left, looked at from behind and above the scene (``view``, when known); on the right
-    the camera image over the plots (tabs) and the event log (routine DEBUG lines filtered out, one click brings
-    them back). A recording opens at its last frame, the whole run in view; press play or scrub to replay it."""
+    """The 3D world on the left, looked at from behind and above the path and the dense part of the map (``view``,
+    when known); on the right the camera image (with the matches of recoveries and feature keyframes) over the
+    plots (tabs: the divergence ratio against its threshold first) and the event log (routine DEBUG lines filtered
+    out, one click brings them back). A recording opens at its last frame, the whole run in view; press play or
+    scrub to replay it."""
     eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0])
     if view is not None:
         eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0], position=view.eye, look_target=view.centre)
@@ -302,9 +381,8 @@ def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
     )
     image = rrb.Spatial2DView(name="Camera", origin=IMAGE)
     plots = rrb.Tabs(
-        rrb.TimeSeriesView(name="Residuals", origin=TRACKING_PLOTS, contents=[
-            f"{TRACKING_PLOTS}/rmse_before", f"{TRACKING_PLOTS}/rmse_after"]),
-        rrb.TimeSeriesView(name="Divergence ratio", origin=f"{TRACKING_PLOTS}/rmse_ratio"),
+        rrb.TimeSeriesView(name="Divergence", origin=DIVERGENCE_PLOTS),
+        rrb.TimeSeriesView(name="Residuals", origin=TRACKING_PLOTS),
         rrb.TimeSeriesView(name="Counts", origin=COUNT_PLOTS),
         rrb.TimeSeriesView(name="Timing (ms)", origin=TIMING_PLOTS),
     )

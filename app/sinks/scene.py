@@ -1,17 +1,21 @@
 """What both viewers show, worked out once and independently of either viewer library.
 
 The Rerun sink and the viser page draw the same things: the estimated path, the ground truth aligned to it,
-the direct cloud colored by inverse depth, events styled by how serious they are. This module holds those
-shared pieces, in the estimate's world frame (the odometry's, in its own monocular scale), so the two
-viewers never disagree about where something is or what color it has.
+the direct cloud colored by inverse depth and the feature cloud in a colour of its own, the matches of a
+recovery or a feature keyframe (inliers and outliers), events styled by how serious they are and marked where
+they happened, and a default view of the path and the dense part of the map. This module holds those shared
+pieces, in the estimate's world frame (the odometry's, in its own monocular scale), so the two viewers never
+disagree about where something is, how big it is drawn or what color it has.
 """
 
 from __future__ import annotations
 
+from collections import defaultdict
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from vo_core.errors import InputError
 from vo_core.eval import associate, fit_alignment
@@ -25,11 +29,14 @@ MIN_POSES_TO_ALIGN = 3  # Umeyama's Sim(3) needs three non-collinear positions
 # Colors (RGB) of the layers, the same in both viewers.
 ESTIMATE_COLOR = (230, 80, 40)
 GROUND_TRUTH_COLOR = (40, 170, 90)
-FEATURE_POINT_COLOR = (250, 170, 20)
+FEATURE_POINT_COLOR = (170, 40, 255)  # violet: a hue the direct cloud's turbo colormap never takes
 KEYFRAME_COLOR = (70, 110, 230)
 CURRENT_CAMERA_COLOR = (230, 40, 40)
 OVERLAY_POINT_COLOR = (60, 230, 60)
-MATCH_COLOR = (250, 170, 20)  # feature matches, in the feature map's color
+MATCH_INLIER_COLOR = FEATURE_POINT_COLOR  # feature matches the pose accepted, in the feature map's color
+MATCH_OUTLIER_COLOR = (255, 40, 40)
+DIVERGENCE_RATIO_COLOR = ESTIMATE_COLOR
+DIVERGENCE_THRESHOLD_COLOR = (120, 120, 120)
 
 # The inverse depths between these percentiles span the colormap; outliers take its end colors, so one
 # point very close to the camera does not wash the rest of the cloud into a single color.
@@ -54,32 +61,61 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.INITIALIZATION_SUCCEEDED: EventStyle("INFO", (40, 200, 80)),
     EventKind.INITIALIZATION_FAILED: EventStyle("WARN", (255, 160, 0)),
     EventKind.INITIALIZER_MODEL: _ROUTINE,
+    EventKind.INITIALIZATION_REJECTED: EventStyle("WARN", (255, 80, 160)),
     EventKind.TRACKING_OK: _ROUTINE,
     EventKind.TRACKING_FAILED: EventStyle("ERROR", (230, 30, 30)),
     EventKind.DIVERGENCE_DETECTED: EventStyle("WARN", (255, 120, 0)),
-    EventKind.TRACKING_CHECKED: EventStyle("DEBUG", (180, 200, 120)),
+    EventKind.TRACKING_CHECKED: EventStyle("DEBUG", (180, 200, 120), marked=False),  # a suspicion dispelled
     EventKind.RECOVERY_TRIED: EventStyle("INFO", (240, 220, 40)),
     EventKind.RECOVERY_SUCCEEDED: EventStyle("INFO", (0, 210, 210)),
     EventKind.RECOVERY_FAILED: EventStyle("ERROR", (200, 0, 60)),
     EventKind.DIRECT_RESTARTED: EventStyle("WARN", (0, 150, 255)),
-    EventKind.FEATURE_TRACKING: EventStyle("INFO", (250, 170, 20)),
+    EventKind.FEATURE_TRACKING: EventStyle("INFO", FEATURE_POINT_COLOR),
     EventKind.REINITIALIZATION: EventStyle("WARN", (220, 60, 220)),
     EventKind.KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_CULLED: _ROUTINE,
     EventKind.KEYFRAME_MARGINALIZED: _ROUTINE,
+    EventKind.SCALE_JUMP: EventStyle("WARN", (255, 200, 0)),
     EventKind.MAP_POINTS_CULLED: _ROUTINE,
     EventKind.WINDOW_OPTIMIZED: _ROUTINE,
     EventKind.FRAME_SKIPPED: EventStyle("WARN", (160, 160, 160)),
     EventKind.FRAME_REPEATED: EventStyle("WARN", (160, 160, 160)),
     EventKind.FRAMES_DROPPED: EventStyle("INFO", (90, 90, 255)),
+    EventKind.FRAMES_JUMPED: EventStyle("INFO", (40, 40, 160)),
 }
 _UNLISTED = EventStyle("INFO", (120, 120, 120))
 
 
 def event_style(event: Event) -> EventStyle:
-    """The style of an event's kind; a kind added to the core later is shown plainly rather than refused."""
-    return EVENT_STYLES.get(event.kind, _UNLISTED)
+    return kind_style(event.kind)
+
+
+def kind_style(kind: EventKind) -> EventStyle:
+    """The style of an event kind; a kind added to the core later is shown plainly rather than refused."""
+    return EVENT_STYLES.get(kind, _UNLISTED)
+
+
+@dataclass(frozen=True)
+class PlotLane:
+    """A row of markers on the divergence plot for events of ``kinds``, at ``height``: below the ratio (which sits
+    near 1), so that it says when they happened and they never hide one another; colored as its first kind."""
+
+    name: str
+    kinds: tuple[EventKind, ...]
+    height: float
+
+    @property
+    def color(self) -> tuple[int, int, int]:
+        return kind_style(self.kinds[0]).color
+
+
+PLOT_LANES = (
+    PlotLane("divergence", (EventKind.DIVERGENCE_DETECTED, EventKind.TRACKING_FAILED), 0.4),
+    PlotLane("recovery", (EventKind.RECOVERY_SUCCEEDED,), 0.3),
+    PlotLane("recovery_failed", (EventKind.RECOVERY_FAILED, EventKind.REINITIALIZATION), 0.2),
+    PlotLane("drop_or_jump", (EventKind.FRAMES_DROPPED, EventKind.FRAMES_JUMPED), 0.1),
+)
 
 
 def event_text(event: Event) -> str:
@@ -113,35 +149,127 @@ def inverse_depth_colors(inverse_depths: np.ndarray) -> np.ndarray:
     return _TURBO_RGB[np.round(255.0 * np.clip(normalized, 0.0, 1.0)).astype(np.intp)]
 
 
-# The scene's extent is the diagonal of the box holding the path and the clouds between these percentiles (stray
-# far points ignored), never below MIN_SCENE_SIZE; a viewer looks at its centre from VIEW_OFFSET x extent.
-SCENE_PERCENTILES = (10.0, 50.0, 90.0)
+def match_colors(count: int, inlier: np.ndarray | None) -> np.ndarray:
+    """(count, 3) uint8 RGB of feature matches: inliers in the feature map's color, outliers red (``inlier`` None:
+    every match is an inlier, as the new matches of a feature keyframe)."""
+    colors = np.tile(np.uint8(MATCH_INLIER_COLOR), (count, 1))
+    if inlier is not None:
+        colors[~np.asarray(inlier, dtype=bool)] = MATCH_OUTLIER_COLOR
+    return colors
+
+
+# The default view holds the path and the map points near it: a cloud point farther from the path than
+# NEAR_PATH_FACTOR x the median distance of the cloud to the path is ignored (a few points triangulated far away
+# would otherwise shrink the scene to a dot), and of what remains the box between CLOUD_PERCENTILES is framed
+# with the path's box between PATH_PERCENTILES (a pose or two thrown far by a divergence left out).
+NEAR_PATH_FACTOR = 3.0
+CLOUD_PERCENTILES = (2.0, 98.0)
+PATH_PERCENTILES = (1.0, 99.0)
+MAX_FRAMING_POINTS = 5000  # a regular subsample of larger clouds: the bounds do not need every point
 MIN_SCENE_SIZE = 1.0
 VIEW_OFFSET = np.array([0.0, -0.5, -1.0])  # behind and above (the world's y points down)
 
 
 @dataclass(frozen=True)
 class Framing:
+    """A box to look at: its centre and its diagonal."""
+
     centre: np.ndarray
     size: float
 
     @property
     def eye(self) -> np.ndarray:
+        """Where a viewer looks from: behind and above the centre, far enough to see the whole box."""
         return self.centre + VIEW_OFFSET * self.size
 
 
-def framing(*point_sets: np.ndarray | None) -> Framing | None:
-    """Where to look to see the path and the clouds: their robust centre and extent; None without points."""
-    parts = [np.asarray(points).reshape(-1, 3) for points in point_sets if points is not None and len(points)]
-    if not parts:
+def framing(path: np.ndarray | None, *clouds: np.ndarray | None) -> Framing | None:
+    """The default view of the path and the dense part of the clouds around it; None without points."""
+    path = _finite(path)
+    cloud = _finite(*clouds)
+    if len(cloud) > MAX_FRAMING_POINTS:
+        cloud = cloud[:: len(cloud) // MAX_FRAMING_POINTS + 1]
+    if len(path) and len(cloud):
+        distances, _ = cKDTree(path).query(cloud)
+        cloud = cloud[distances <= NEAR_PATH_FACTOR * max(float(np.median(distances)), 1e-9)]
+    boxes = [np.percentile(points, percentiles, axis=0) for points, percentiles in
+             ((path, PATH_PERCENTILES), (cloud, CLOUD_PERCENTILES)) if len(points)]
+    if not boxes:
         return None
-    low, centre, high = np.percentile(np.concatenate(parts), SCENE_PERCENTILES, axis=0)
-    return Framing(centre, max(float(np.linalg.norm(high - low)), MIN_SCENE_SIZE))
+    low, high = np.min([box[0] for box in boxes], axis=0), np.max([box[1] for box in boxes], axis=0)
+    return Framing((low + high) / 2.0, max(float(np.linalg.norm(high - low)), MIN_SCENE_SIZE))
+
+
+def _finite(*point_sets: np.ndarray | None) -> np.ndarray:
+    parts = [np.asarray(points, dtype=float).reshape(-1, 3) for points in point_sets if points is not None]
+    points = np.concatenate(parts) if parts else np.zeros((0, 3))
+    return points[np.all(np.isfinite(points), axis=1)]
+
+
+# Things are drawn at fractions of the scene's extent (monocular scale is arbitrary), resized only when the extent
+# changed by RESIZE_FACTOR (a resize at every keyframe would make the scene flicker).
+FRUSTUM_FRACTION = 0.03
+POINT_FRACTION = 0.003
+MARKER_FRACTION = 0.012
+RESIZE_FACTOR = 1.5
+
+
+def resized(size: float, reference: float) -> bool:
+    """Whether a scene of ``size`` is drawn differently from one of ``reference``: RESIZE_FACTOR apart."""
+    return not 1.0 / RESIZE_FACTOR < size / reference < RESIZE_FACTOR
+
+
+class SceneScale:
+    """The sizes of frustums, points and event markers, following the scene's extent."""
+
+    def __init__(self) -> None:
+        self.size = MIN_SCENE_SIZE
+
+    def follow(self, view: Framing | None) -> bool:
+        """Take ``view``'s extent if it differs enough from the one drawn; True when the sizes changed."""
+        if view is None or not resized(view.size, self.size):
+            return False
+        self.size = view.size
+        return True
+
+    @property
+    def frustum(self) -> float:
+        return FRUSTUM_FRACTION * self.size
+
+    @property
+    def point(self) -> float:
+        return POINT_FRACTION * self.size
+
+    @property
+    def marker(self) -> float:
+        return MARKER_FRACTION * self.size
+
+
+class EventMarkers:
+    """Where the marked events (``EventStyle.marked``) happened, by kind. An event comes before its frame's result,
+    so it is placed at the pose of the next frame tracked, or at the last pose known when that frame got none."""
+
+    def __init__(self) -> None:
+        self.positions: dict[EventKind, list[np.ndarray]] = defaultdict(list)
+        self._pending: list[Event] = []
+
+    def add(self, event: Event) -> None:
+        if event_style(event).marked:
+            self._pending.append(event)
+
+    def place(self, position: np.ndarray | None) -> list[Event]:
+        """Place the events waiting for a pose at ``position`` (None: no pose yet, they keep waiting); returns them."""
+        if position is None or not self._pending:
+            return []
+        placed, self._pending = self._pending, []
+        for event in placed:
+            self.positions[event.kind].append(np.asarray(position, dtype=float))
+        return placed
 
 
 class PathHistory:
-    """The poses estimated so far, in the order they came (timestamps increase along a pass). The positions are
-    kept in a buffer that doubles when full, so that reading them costs a copy, not a loop over the poses."""
+    """The poses estimated so far, in the order they came (timestamps go back after a backward jump). The positions
+    are kept in a buffer that doubles when full, so that reading them costs a copy, not a loop over the poses."""
 
     def __init__(self) -> None:
         self.timestamps: list[float] = []
@@ -162,13 +290,16 @@ class PathHistory:
         """(N - start, 3) camera centres, from pose ``start`` on (a copy)."""
         return self._positions[start:len(self.poses)].copy()
 
-    def trajectory(self) -> Trajectory:
-        return Trajectory(np.array(self.timestamps), np.array(self.poses).reshape(-1, 4, 4))
+    def last_position(self) -> np.ndarray | None:
+        return self._positions[len(self.poses) - 1].copy() if self.poses else None
 
-    def extent(self) -> float:
-        """The diagonal of the positions' bounding box: the size of the scene so far, in its own units."""
-        positions = self.positions()
-        return float(np.linalg.norm(np.ptp(positions, axis=0))) if len(positions) else 0.0
+    def trajectory(self) -> Trajectory:
+        """The latest pose of each timestamp, in time order (a frame played again after a backward jump counts
+        once, with its new pose): what the ground truth is aligned to."""
+        times = np.array(self.timestamps)
+        _, last_from_the_end = np.unique(times[::-1], return_index=True)  # sorted by time
+        latest = len(times) - 1 - last_from_the_end
+        return Trajectory(times[latest], np.array(self.poses).reshape(-1, 4, 4)[latest])
 
 
 class GroundTruthOverlay:
