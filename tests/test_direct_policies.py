@@ -47,3 +47,16 @@ def test_constant_velocity_comes_first_and_extrapolates_the_last_motion():
     assert len(hypotheses) == 5 + 26  # DSO: 5 motion guesses and 26 rotated constant-velocity guesses
     np.testing.assert_allclose(hypotheses[4], np.eye(4))  # zero motion from the keyframe
     assert all(np.allclose(h[:3, :3].T @ h[:3, :3], np.eye(3)) for h in hypotheses)
+
+
+def test_missed_frames_put_the_constant_velocity_over_the_time_that_passed_first():
+    T_world_ref = pose()
+    T_world_prev2 = pose((0.0, 0.01, 0.0), (0.1, 0.0, 0.0))
+    T_world_prev1 = pose((0.0, 0.02, 0.0), (0.2, 0.0, 0.0))
+    regular = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02)
+    after_gap = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02, intervals_elapsed=3.0)
+    step = T_world_prev1 @ se3_inverse(T_world_prev2)  # the last motion, in the world frame
+    expected_world_frame = step @ step @ step @ T_world_prev1
+    np.testing.assert_allclose(after_gap[0], se3_inverse(expected_world_frame) @ T_world_ref, atol=1e-9)
+    assert len(after_gap) == len(regular) + 1
+    np.testing.assert_allclose(np.array(after_gap[1:]), np.array(regular))  # DSO's guesses follow, unchanged

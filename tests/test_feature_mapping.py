@@ -172,3 +172,26 @@ def test_compaction_keeps_every_observation_on_its_point(monkeypatch):
              for k in feature_map.keyframes.values() for f in k.observed()}
     assert before.keys() == after.keys()
     assert all(np.array_equal(before[key], after[key]) for key in before)
+
+
+def test_recovery_searches_around_the_system_estimate_when_no_candidate_gives_a_pose(smooth_map):
+    """Relocalizer.recover's last resort (a long forward jump that blind matching cannot bridge): the local map
+    searched around the system's estimate. Bag-of-words candidates are switched off to isolate it."""
+    from vo_core.features.recovery import ESTIMATE, Relocalizer
+    from vo_core.geometry.lie import se3, se3_exp
+
+    feature_map, _, frames = smooth_map
+    config = FeatureConfig()
+    config.recovery.max_candidates = 0
+    relocalizer = Relocalizer(config, CAMERA, load_vocabulary())
+    last_keyframe = max(frames)
+    frame = SEQUENCE[last_keyframe + 2]
+    scale = median_depth(frame)
+    near = frame.T_world_cam @ se3(se3_exp(np.array([0, 0, 0, 0.0, 0.01, 0.0]))[:3, :3],
+                                   np.array([0.02, -0.01, 0.01]) * scale)  # 2.4 % of the depth, 0.6 degrees off
+    outcome = relocalizer.recover(feature_map, frame.image, last_keyframe, near)
+    assert outcome.succeeded and outcome.stage == ESTIMATE
+    assert np.linalg.norm(outcome.T_world_cam[:3, 3] - frame.T_world_cam[:3, 3]) < 0.01 * scale
+    assert not relocalizer.recover(feature_map, frame.image, last_keyframe).succeeded
+    far = frame.T_world_cam @ se3(se3_exp(np.array([0, 0, 0, 0.0, 0.5, 0.0]))[:3, :3], np.zeros(3))
+    assert not relocalizer.recover(feature_map, frame.image, last_keyframe, far).succeeded

@@ -178,7 +178,8 @@ class Odometry:
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                  result: FrameResult) -> Keyframe | None:
-        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index)
+        estimate = tracking.T_world_cam if tracking.converged else None
+        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
         result.timings_ms["recovery"] = outcome.ms
         if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
             return self.direct.accept(frame, tracking, result)

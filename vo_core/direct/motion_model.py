@@ -2,7 +2,8 @@
 
 Constant velocity first, then double, half and zero motion, zero motion from the keyframe, and the
 constant-velocity guess rotated by small angles about the 26 axis combinations; the tracker tries them in
-this order and stops at the first that is good enough.
+this order and stops at the first that is good enough. When the timestamps say frames were missed, the constant
+velocity over the time that passed comes before all of them.
 """
 
 from __future__ import annotations
@@ -44,12 +45,15 @@ def _rotation_perturbations(delta: float) -> list[np.ndarray]:
 
 
 def motion_hypotheses(
-    T_world_prev2: np.ndarray | None, T_world_prev1: np.ndarray, T_world_ref: np.ndarray, rotation_delta: float
+    T_world_prev2: np.ndarray | None, T_world_prev1: np.ndarray, T_world_ref: np.ndarray, rotation_delta: float,
+    intervals_elapsed: float | None = None,
 ) -> list[np.ndarray]:
     """Guesses of T_frame_ref for the next frame, most likely first.
 
     ``T_world_prev1`` / ``T_world_prev2`` are the last and second-to-last tracked frames, ``T_world_ref`` the
-    reference keyframe. Without a second-to-last frame only zero motion is tried."""
+    reference keyframe. Without a second-to-last frame only zero motion is tried. ``intervals_elapsed``: the
+    timestamps say that this many of the last frame intervals passed (frames were missed); the last motion
+    repeated that many times comes first (ours: DSO assumes every frame arrives)."""
     T_prev1_ref = se3_inverse(T_world_prev1) @ T_world_ref
     if T_world_prev2 is None:
         return [T_prev1_ref, np.eye(4)]
@@ -64,4 +68,6 @@ def motion_hypotheses(
         np.eye(4),  # zero motion from the keyframe
     ]
     hypotheses += [constant @ se3(R, np.zeros(3)) for R in _rotation_perturbations(rotation_delta)]
+    if intervals_elapsed is not None:
+        hypotheses.insert(0, se3_exp(intervals_elapsed * se3_log(T_frame_prev1)) @ T_prev1_ref)
     return hypotheses

@@ -113,6 +113,7 @@ class _Tracked:
 
     T_world_cam: np.ndarray
     affine: np.ndarray
+    timestamp: float
 
 
 @dataclass
@@ -260,7 +261,7 @@ class DirectOdometry:
             previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
             hypotheses = motion_hypotheses(
                 previous2, self.history[-1].T_world_cam, reference.T_world_cam,
-                self.config.tracker.rotation_perturbation,
+                self.config.tracker.rotation_perturbation, self._frames_elapsed(frame),
             )
         best, prior_rmse, achieved, tried = self._best_hypothesis(
             frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
@@ -271,6 +272,18 @@ class DirectOdometry:
             reference, best, prior_rmse, achieved, last_rmse, good_enough, tried, T_world_cam_prior is not None,
             _ms_since(start),
         )
+
+    def _frames_elapsed(self, frame: DirectFrame) -> float | None:
+        """How many of the last frame intervals passed since the last tracked frame, when that is more than
+        ``tracker.time_gap_factor`` (frames were missed: dropped by a driver or on purpose); None otherwise, and
+        when the timestamps do not say (two tracked frames needed, time going forward)."""
+        if len(self.history) < 2:
+            return None
+        interval = self.history[-1].timestamp - self.history[-2].timestamp
+        elapsed = frame.timestamp - self.history[-1].timestamp
+        if interval <= 0 or elapsed <= interval * self.config.tracker.time_gap_factor:
+            return None
+        return elapsed / interval
 
     def accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
         """Commit a converged tracking: the frame's pose, the immature points traced in it, and a new keyframe
@@ -283,7 +296,7 @@ class DirectOdometry:
         result.num_inliers = best.num_terms
         result.points_2d = self._visible(self.tracker.project_points(best.T_frame_ref))
         self.last_rmse = tracking.achieved_rmse
-        self.history = self.history[-1:] + [_Tracked(T_world_cam, best.affine)]
+        self.history = self.history[-1:] + [_Tracked(T_world_cam, best.affine, frame.timestamp)]
         if self.first_rmse < 0:
             self.first_rmse = best.rmse_after
 
@@ -333,7 +346,7 @@ class DirectOdometry:
         keyframe.add_active(np.asarray(points_uv, float), np.asarray(inverse_depths, float))
         self.keyframes = [keyframe]
         self.prior = MarginalizationPrior()
-        self.history = [_Tracked(keyframe.T_world_cam, keyframe.affine)]
+        self.history = [_Tracked(keyframe.T_world_cam, keyframe.affine, keyframe.timestamp)]
         self.state = _State.TRACKING
         self.first_rmse = -1.0
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
@@ -379,7 +392,8 @@ class DirectOdometry:
             )
         )
         T_world_cam = first.T_world_cam @ outcome.T_first_second
-        self.history = [_Tracked(first.T_world_cam, np.zeros(2)), _Tracked(T_world_cam, np.zeros(2))]
+        self.history = [_Tracked(first.T_world_cam, np.zeros(2), first.timestamp),
+                        _Tracked(T_world_cam, np.zeros(2), frame.timestamp)]
         self.state = _State.TRACKING
         method = self.initializer.name
         if self.config.start_check.enabled:
@@ -490,7 +504,7 @@ class DirectOdometry:
         for keyframe in self.keyframes:
             self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         newest = self.keyframes[-1]
-        self.history[-1] = _Tracked(newest.T_world_cam, newest.affine)
+        self.history[-1] = _Tracked(newest.T_world_cam, newest.affine, newest.timestamp)
         result.T_world_cam = newest.T_world_cam.copy()
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))

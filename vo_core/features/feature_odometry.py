@@ -48,8 +48,9 @@ class FeatureOdometry:
         """The feature initializer's tracks and their triangulated points start the map (FDMO part 1)."""
         return self.mapper.add_tracked_points(self.map, first, second, uv_first, uv_second, points_world)
 
-    def recover(self, image: np.ndarray, last_keyframe: int | None) -> RecoveryOutcome:
-        return self.relocalizer.recover(self.map, image, last_keyframe)
+    def recover(self, image: np.ndarray, last_keyframe: int | None,
+                T_world_estimate: np.ndarray | None = None) -> RecoveryOutcome:
+        return self.relocalizer.recover(self.map, image, last_keyframe, T_world_estimate)
 
     def track(self, image: np.ndarray, T_world_guess: np.ndarray, around_keyframe: int) -> RecoveryOutcome:
         return self.relocalizer.track(self.map, image, T_world_guess, around_keyframe)

@@ -10,6 +10,10 @@
                    guided search in a 5x5 window around every projected point of the candidate and of its
                    covisible keyframes, motion-only bundle adjustment again
                    accepted with at least 30 inliers
+    if no candidate gives a pose and the system has an estimate of its own (the direct alignment's): the local map
+                   of the last keyframe searched around that estimate, as ORB-SLAM2 tracks every frame
+                   (TrackWithMotionModel). A long forward jump changes the view too much for blind matching (KITTI,
+                   7 m: 14 matches by bag of words) but not for a search around a good estimate (48 inliers).
 
 ``Relocalizer.track`` is feature-based tracking (Fig. 3's fallback until direct tracking is back): the same
 guided search and pose refinement, seeded by a motion model instead of EPnP.
@@ -35,7 +39,7 @@ from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.geometry.multiview import PnPConfig, estimate_pose
 from vo_core.geometry.pose_only import refine_pose
 
-LOCAL, GLOBAL, TRACKING = "local", "global", "tracking"  # where a pose came from
+LOCAL, GLOBAL, ESTIMATE, TRACKING = "local", "global", "estimate", "tracking"  # where a pose came from
 
 
 @dataclass
@@ -72,7 +76,7 @@ class PoseFromMap:
 class RecoveryOutcome:
     succeeded: bool
     reason: str = ""
-    stage: str = ""  # LOCAL or GLOBAL candidates, or TRACKING from a motion model
+    stage: str = ""  # LOCAL or GLOBAL candidates, around the system's ESTIMATE, or TRACKING from a motion model
     keyframe: int | None = None  # the candidate keyframe that gave the pose
     candidates: dict[str, int] = field(default_factory=dict)  # stage -> candidates tried
     pose: PoseFromMap | None = None
@@ -118,11 +122,18 @@ class Relocalizer:
 
     # ------------------------------------------------------------------------------------ recovery
 
-    def recover(self, feature_map: FeatureMap, image: np.ndarray, last_keyframe: int | None) -> RecoveryOutcome:
-        """A pose for the frame from the feature map, local candidates first, then (if allowed) global ones."""
+    def recover(self, feature_map: FeatureMap, image: np.ndarray, last_keyframe: int | None,
+                T_world_estimate: np.ndarray | None = None) -> RecoveryOutcome:
+        """A pose for the frame from the feature map, local candidates first, then (if allowed) global ones, then
+        the search around ``T_world_estimate`` (the system's own estimate, if it has one)."""
         start = time.perf_counter()
         frame = self.extract(image)
         outcome = self._recover(feature_map, frame, last_keyframe)
+        if not outcome.succeeded and T_world_estimate is not None and last_keyframe in feature_map.keyframes:
+            around = self._track_from(feature_map, frame, T_world_estimate, last_keyframe, stage=ESTIMATE)
+            if around.succeeded:
+                around.candidates = outcome.candidates
+                outcome = around
         outcome.features = frame
         deprived_below = self.config.recovery.feature_deprived_below * self.config.orb.num_features
         outcome.feature_deprived = len(frame.features) < deprived_below
@@ -157,12 +168,14 @@ class Relocalizer:
             f"{best.found_fraction if best else 0:.1%})")
         return RecoveryOutcome(False, reason, candidates=candidates, pose=best)
 
-    def accepted(self, pose: PoseFromMap) -> bool:
+    def accepted(self, pose: PoseFromMap, stage: str = LOCAL) -> bool:
         """FDMO 4.2.2's 30 inliers, and a fair share of the local map points in view found: a wrong pose can
         gather 30 consistent matches on a few far, poorly triangulated points (teddy, 30 frames dropped at 100:
-        49 inliers, 2.8 % of the points in view, 33 cm off), a right one finds 14-15 % there."""
+        49 inliers, 2.8 % of the points in view, 33 cm off), a right one finds 14-15 % there. A search around the
+        system's estimate needs a larger share (RecoveryConfig.min_found_fraction_around_estimate)."""
         recovery = self.config.recovery
-        return pose.num_inliers >= recovery.min_inliers and pose.found_fraction >= recovery.min_found_fraction
+        share = recovery.min_found_fraction_around_estimate if stage == ESTIMATE else recovery.min_found_fraction
+        return pose.num_inliers >= recovery.min_inliers and pose.found_fraction >= share
 
     def _local_candidates(self, feature_map: FeatureMap, last_keyframe: int | None) -> set[int]:
         """FDMO 4.2.2: the keyframes connected to the last direct keyframe in the covisibility graph."""
@@ -200,17 +213,22 @@ class Relocalizer:
         """Feature-based tracking: the local map of ``around_keyframe`` searched around its projection at the
         motion model's guess (ORB-SLAM2 TrackWithMotionModel's wide window), then in the 5x5 window."""
         start = time.perf_counter()
-        recovery = self.config.recovery
         frame = self.extract(image)
+        outcome = self._track_from(feature_map, frame, T_world_guess, around_keyframe, stage=TRACKING)
+        outcome.features, outcome.ms = frame, (time.perf_counter() - start) * 1000.0
+        return outcome
+
+    def _track_from(self, feature_map: FeatureMap, frame: FrameFeatures, T_world_guess: np.ndarray,
+                    around_keyframe: int, stage: str) -> RecoveryOutcome:
+        recovery = self.config.recovery
         local_map = self._local_map(feature_map, around_keyframe)
         guess = PoseFromMap(T_world_guess, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool))
         pose = self._guided(feature_map, frame, local_map, guess, recovery.tracking_radius_px)
         if pose.num_inliers >= recovery.min_ransac_inliers:
             pose = self._guided(feature_map, frame, local_map, pose, recovery.guided_radius_px)
-        succeeded = self.accepted(pose)
+        succeeded = self.accepted(pose, stage)
         reason = "" if succeeded else f"{pose.num_inliers} inliers, {pose.found_fraction:.1%} of the points in view"
-        return RecoveryOutcome(succeeded, reason, stage=TRACKING, keyframe=around_keyframe, pose=pose,
-                               features=frame, ms=(time.perf_counter() - start) * 1000.0)
+        return RecoveryOutcome(succeeded, reason, stage=stage, keyframe=around_keyframe, pose=pose)
 
     # ------------------------------------------------------------------------------------ shared steps
 
