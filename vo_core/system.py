@@ -7,8 +7,8 @@ each half offers steps and decides nothing:
     divergence test                                        direct/divergence.py: trusted, suspect, diverged, lost
     if not trusted: feature-based recovery (Fig. 3)        FeatureOdometry.recover: a pose from the feature map
         a suspect pose the feature map agrees with is kept
-        else direct alignment from the recovered pose, kept if it converges and agrees with the feature map
-        else the direct map restarts at the recovered pose with the feature points' depths (same scale)
+        else the direct map restarts at the recovered pose (refined by direct alignment where that converges
+            and agrees with the feature map) with the feature points' depths (same scale)
         else the frame gets the feature pose and feature tracking takes the next frames
         no pose at all: the frame is lost; after a while the direct map initializes anew (a new scale)
     accept: immature points, keyframe decision, window      DirectOdometry.accept
