@@ -3,7 +3,9 @@
 Constant velocity first, then double, half and zero motion, zero motion from the keyframe, and the
 constant-velocity guess rotated by small angles about the 26 axis combinations; the tracker tries them in
 this order and stops at the first that is good enough. When the timestamps say frames were missed, the constant
-velocity over the time that passed comes before all of them.
+velocity over the time that passed is tried after all of them: first, it misled handheld motion (teddy, 10 frames
+dropped: a converged pose with an acceptable RMSE, ATE 0.020 m against 0.011 m), while where it is needed (a car
+after 7 m) none of DSO's guesses is good enough and it is reached anyway.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ def motion_hypotheses(
     ``T_world_prev1`` / ``T_world_prev2`` are the last and second-to-last tracked frames, ``T_world_ref`` the
     reference keyframe. Without a second-to-last frame only zero motion is tried. ``intervals_elapsed``: the
     timestamps say that this many of the last frame intervals passed (frames were missed); the last motion
-    repeated that many times comes first (ours: DSO assumes every frame arrives)."""
+    repeated that many times comes last (ours: DSO assumes every frame arrives)."""
     T_prev1_ref = se3_inverse(T_world_prev1) @ T_world_ref
     if T_world_prev2 is None:
         return [T_prev1_ref, np.eye(4)]
@@ -69,5 +71,5 @@ def motion_hypotheses(
     ]
     hypotheses += [constant @ se3(R, np.zeros(3)) for R in _rotation_perturbations(rotation_delta)]
     if intervals_elapsed is not None:
-        hypotheses.insert(0, se3_exp(intervals_elapsed * se3_log(T_frame_prev1)) @ T_prev1_ref)
+        hypotheses.append(se3_exp(intervals_elapsed * se3_log(T_frame_prev1)) @ T_prev1_ref)
     return hypotheses
