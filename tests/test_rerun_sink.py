@@ -180,11 +180,16 @@ def test_event_markers_sit_on_the_trajectory_one_entity_per_kind(recording):
     # Keyframes are routine: not marked.
     assert marked == {"initialization_succeeded", "tracking_failed", "divergence_detected", "recovery_tried",
                       "recovery_succeeded", "frames_dropped"}
-    # The failure at the lost frame is marked where the camera last was, the recovery where it put the camera.
+    # The failure at the lost frame is marked where the camera last was, the divergence where the recovery put the
+    # camera; the recovery's attempt and success above it (y points down), in the order they came.
     failure = column(recording["/world/events/tracking_failed"], "Points3D:positions")[-1]
     np.testing.assert_allclose(failure, [camera_pose(LOST_FRAME - 1)[:3, 3]], atol=1e-6)
-    recovery = column(recording["/world/events/recovery_succeeded"], "Points3D:positions")[-1]
-    np.testing.assert_allclose(recovery, [camera_pose(RECOVERY_FRAME)[:3, 3]], atol=1e-6)
+    stack = [column(recording[f"/world/events/{kind}"], "Points3D:positions")[-1][0]
+             for kind in ("divergence_detected", "recovery_tried", "recovery_succeeded")]
+    np.testing.assert_allclose(stack[0], camera_pose(RECOVERY_FRAME)[:3, 3], atol=1e-6)
+    lifts = np.subtract(stack, stack[0])
+    np.testing.assert_allclose(lifts[:, [0, 2]], 0.0, atol=1e-6)
+    assert 0.0 > lifts[1, 1] > lifts[2, 1]
     colors = {kind: column(recording[f"/world/events/{kind}"], "Points3D:colors")[-1][0] for kind in marked}
     assert len(set(colors.values())) == len(marked)  # each kind its own color
 
@@ -261,6 +266,16 @@ def test_frames_played_again_go_on_along_the_step_timeline(tmp_path):
     camera = [chunk for chunk in rr.chunk.RrdReader(path).stream().to_chunks() if chunk.entity_path == "/world/camera"]
     rows = sorted(zip(column(camera, "step"), column(camera, "frame")))
     assert rows == list(enumerate([0, 1, 2, 3, 4, 3, 4]))
+    assert opening_timeline(path) == "step"  # the replay beside the first playing, not over it
+
+
+def opening_timeline(path) -> str:
+    """The timeline the recording's blueprint opens on: the last one sent (the file's blueprints come in no order)."""
+    reader = rr.chunk.RrdReader(path)
+    panels = [chunk.to_record_batch().to_pydict() for blueprint in reader.blueprints()
+              for chunk in reader.stream(store=blueprint).to_chunks() if chunk.entity_path == "/time_panel"]
+    return max((panel["log_time"][0], panel["TimePanelBlueprint:timeline"][0][0]) for panel in panels
+               if "TimePanelBlueprint:timeline" in panel)[1]
 
 
 def test_recording_carries_the_default_blueprint(tmp_path):
@@ -270,6 +285,7 @@ def test_recording_carries_the_default_blueprint(tmp_path):
     assert blueprints and all(entry.application_id == "fdmo" for entry in blueprints)
     views = {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream(store=blueprints[-1]).to_chunks()}
     assert any(path.startswith("/view/") for path in views)  # the views of default_blueprint
+    assert opening_timeline(path) == "frame"  # no frame played twice
 
 
 # ------------------------------------------------------------------------ the helpers both viewers share

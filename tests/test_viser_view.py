@@ -266,9 +266,31 @@ class PassRecorder:
         pass
 
 
-def test_restart_from_the_page_starts_a_new_rerun_recording(tmp_path):
-    """The whole pipeline with the page and a recording: after Restart the file holds a new recording (a new id)
-    with the second pass alone, and the page counts the second pass alone."""
+def click_restart_on_the_server(view: ViserView, restarted) -> None:
+    view.restart_button.value = True
+
+
+def click_restart_in_chromium(view: ViserView, restarted) -> None:
+    """A real click on the page's button; the page stays open until the run has restarted (closing it at once could
+    drop the click on its way)."""
+    page = ChromiumPage(view.url)
+    try:
+        page.wait_for("document.body.innerText.includes('sequence finished')")
+        page.click("Restart")
+        wait_until(restarted)
+    finally:
+        page.close()
+
+
+@pytest.mark.parametrize("click_restart", [
+    click_restart_on_the_server,
+    pytest.param(click_restart_in_chromium, marks=pytest.mark.skipif(CHROMIUM is None,
+                                                                     reason="chromium is not installed")),
+])
+def test_restart_from_the_page_starts_a_new_rerun_recording(tmp_path, click_restart):
+    """The whole pipeline with the page and a recording: after Restart (assigned on the server, or clicked in the
+    page in headless Chromium) the file holds a new recording (a new id) with the second pass alone, and the page
+    counts the second pass alone."""
     from app.sinks.rerun_sink import RerunSink
     import rerun as rr
 
@@ -283,7 +305,7 @@ def test_restart_from_the_page_starts_a_new_rerun_recording(tmp_path):
     run.start()
     wait_until(lambda: player.finished)
     first_id = recording.recording.get_recording_id()
-    view.restart_button.value = True
+    click_restart(view, lambda: len(processed.passes) == 2)
     wait_until(lambda: len(processed.passes) == 2 and len(processed.passes[1]) == len(sequence) and player.finished)
     view.refresh()
     player.stop()

@@ -23,7 +23,8 @@ Entities (the 3D world is the estimate's: the first camera's frame, x right, y d
     world/map/direct_points         the active window's points, colored by inverse depth (turbo, near red)
     world/map/feature_points        the feature map's points (violet)
     world/keyframes/<frame>         a frustum per keyframe: its pose (Transform3D) and a pinhole
-    world/events/<kind>             a marker where each non-routine event happened, one entity per kind
+    world/events/<kind>             a marker where each non-routine event happened, one entity per kind (the
+                                    kinds of one frame stacked upwards from its pose: scene.EventMarkers)
     events                          every event as a TextLog line (failures as WARN/ERROR)
     plots/divergence/ratio, .../threshold   FDMO's divergence test: RMSE after/before against 1 + epsilon
     plots/divergence/events/<lane>  divergences, recoveries, failed recoveries, drops and jumps as markers on that
@@ -212,12 +213,18 @@ class RerunSink:
         self._scalars.send(self.recording)
         view = self._view()
         if view is not None:  # the default view, now that the scene's extent is known
-            self.recording.send_blueprint(default_blueprint(view), make_active=True, make_default=True)
+            self.recording.send_blueprint(default_blueprint(view, self._timeline()), make_active=True,
+                                          make_default=True)
         self.recording.flush(timeout_sec=10.0)
         self.recording.disconnect()
 
     def _view(self) -> Framing | None:
         return framing(self.history.positions(), *self._clouds)
+
+    def _timeline(self) -> str:
+        """The timeline a recording opens on: ``step`` when frames were played again (on ``frame`` the replay would
+        lie over the first playing, its divergence hidden under the values it replaced), ``frame`` otherwise."""
+        return STEP_TIMELINE if np.any(np.diff(self.history.timestamps) < 0) else FRAME_TIMELINE
 
     def _set_time(self, frame_index: int, timestamp: float, step: int) -> None:
         self.recording.set_time(FRAME_TIMELINE, sequence=int(frame_index))
@@ -299,7 +306,7 @@ class RerunSink:
         kinds = set(event.kind for event in self._markers.place(position))
         for kind in kinds:
             self.recording.log(f"{EVENT_MARKERS}/{kind.value}", rr.Points3D(
-                np.array(self._markers.positions[kind]), colors=kind_style(kind).color, labels=kind.value,
+                self._markers.stacked(kind, self._scale.marker), colors=kind_style(kind).color, labels=kind.value,
                 radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
             ))
         for lane in PLOT_LANES:
@@ -366,12 +373,12 @@ class _ScalarColumns:
         self._rows.clear()
 
 
-def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
+def default_blueprint(view: Framing | None = None, timeline: str = FRAME_TIMELINE) -> rrb.Blueprint:
     """The 3D world on the left, looked at from behind and above the path and the dense part of the map (``view``,
     when known); on the right the camera image (with the matches of recoveries and feature keyframes) over the
     plots (tabs: the divergence ratio against its threshold first) and the event log (routine DEBUG lines filtered
-    out, one click brings them back). A recording opens at its last frame, the whole run in view; press play or
-    scrub to replay it."""
+    out, one click brings them back). A recording opens on ``timeline`` at its last frame, the whole run in view;
+    press play or scrub to replay it."""
     eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0])
     if view is not None:
         eye = rrb.EyeControls3D(kind="Orbital", eye_up=[0.0, -1.0, 0.0], position=view.eye, look_target=view.centre)
@@ -381,7 +388,8 @@ def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
     )
     image = rrb.Spatial2DView(name="Camera", origin=IMAGE)
     plots = rrb.Tabs(
-        rrb.TimeSeriesView(name="Divergence", origin=DIVERGENCE_PLOTS),
+        # The legend top left: the event lanes run along the bottom, and the run's end is where the cursor is.
+        rrb.TimeSeriesView(name="Divergence", origin=DIVERGENCE_PLOTS, plot_legend=rrb.Corner2D.LeftTop),
         rrb.TimeSeriesView(name="Residuals", origin=TRACKING_PLOTS),
         rrb.TimeSeriesView(name="Counts", origin=COUNT_PLOTS),
         rrb.TimeSeriesView(name="Timing (ms)", origin=TIMING_PLOTS),
@@ -396,5 +404,5 @@ def default_blueprint(view: Framing | None = None) -> rrb.Blueprint:
         rrb.Horizontal(world, rrb.Vertical(image, plots, events, row_shares=[3, 2, 2]), column_shares=[3, 2]),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="collapsed", timeline=FRAME_TIMELINE, play_state="Following"),
+        rrb.TimePanel(state="collapsed", timeline=timeline, play_state="Following"),
     )

@@ -245,12 +245,19 @@ class SceneScale:
         return MARKER_FRACTION * self.size
 
 
+UP = np.array([0.0, -1.0, 0.0])  # in the world of the first camera (y down)
+MARKER_STACK_SPACING = 3.5  # marker sizes between the markers of the kinds that happened at one pose
+
+
 class EventMarkers:
     """Where the marked events (``EventStyle.marked``) happened, by kind. An event comes before its frame's result,
-    so it is placed at the pose of the next frame tracked, or at the last pose known when that frame got none."""
+    so it is placed at the pose of the next frame tracked, or at the last pose known when that frame got none.
+    The kinds placed at one pose (a divergence, its recovery, a restart) are stacked upwards from it in the order
+    they came, so that neither their markers nor Rerun's labels hide one another."""
 
     def __init__(self) -> None:
         self.positions: dict[EventKind, list[np.ndarray]] = defaultdict(list)
+        self._ranks: dict[EventKind, list[int]] = defaultdict(list)  # each position's place in its stack
         self._pending: list[Event] = []
 
     def add(self, event: Event) -> None:
@@ -262,9 +269,16 @@ class EventMarkers:
         if position is None or not self._pending:
             return []
         placed, self._pending = self._pending, []
+        stack = list(dict.fromkeys(event.kind for event in placed))
         for event in placed:
             self.positions[event.kind].append(np.asarray(position, dtype=float))
+            self._ranks[event.kind].append(stack.index(event.kind))
         return placed
+
+    def stacked(self, kind: EventKind, marker_size: float) -> np.ndarray:
+        """(N, 3) where the markers of ``kind`` are drawn: its positions, lifted to their places in their stacks."""
+        lift = MARKER_STACK_SPACING * marker_size * np.outer(self._ranks[kind], UP)
+        return np.array(self.positions[kind]).reshape(-1, 3) + lift
 
 
 class PathHistory:

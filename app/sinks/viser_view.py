@@ -374,7 +374,7 @@ class ViserView:
             thumbnails=dict(state.thumbnails), keyframe_poses=dict(state.keyframe_poses),
             direct_points=state.direct_points, direct_colors=state.direct_colors,
             feature_points=state.feature_points,
-            markers={kind: np.array(positions) for kind, positions in state.markers.positions.items()},
+            markers={kind: state.markers.stacked(kind, self._scale.marker) for kind in state.markers.positions},
             divergence=list(state.divergence), status=self._status_text(state), events=list(state.events),
         )
 
