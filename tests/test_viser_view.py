@@ -380,8 +380,10 @@ def test_headless_chromium_renders_the_controls(fake_view):
 def test_drop_and_jump_back_clicked_in_the_page_change_what_the_odometry_receives():
     """Playback waits for the browser; then a click on "Drop N frames" and one on "Jump back N frames" (N = 3): the
     frames the odometry receives skip 3 frames ahead and go 3 frames back. The scene then holds both clouds."""
-    player = Player(FakeSequence(frame(i) for i in range(100)))
-    player.speed = 1.0  # 10 frames a second: time to click, even on a busy machine
+    # 10 frames a second, for 30 s at most: time to click, even on a busy machine (the run ends once both clicks
+    # have taken effect).
+    player = Player(FakeSequence(frame(i) for i in range(300)))
+    player.speed = 1.0
     view = ViserView(CAMERA, player, port=free_port(), wait_for_browser=True)
     view.frame_count.value = 3
     seen: list[int] = []
@@ -402,6 +404,8 @@ def test_drop_and_jump_back_clicked_in_the_page_change_what_the_odometry_receive
         page.click("Drop N frames")
         page.wait_for("document.body.innerText.includes('frames_dropped')")
         page.click("Jump back N frames")
+        page.wait_for("document.body.innerText.includes('frames_jumped')")
+        player.stop()
         odometry.join(timeout=60)
         clouds = page.wait_for("['/map/direct', '/map/features'].every(name => name in "
                                "window.__viserSceneTree.getState())")
