@@ -54,9 +54,22 @@ def test_missed_frames_add_the_constant_velocity_over_the_time_that_passed():
     T_world_prev2 = pose((0.0, 0.01, 0.0), (0.1, 0.0, 0.0))
     T_world_prev1 = pose((0.0, 0.02, 0.0), (0.2, 0.0, 0.0))
     regular = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02)
-    after_gap = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02, intervals_elapsed=3.0)
+    after_gap = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02, time_ratio=3.0)
     step = T_world_prev1 @ se3_inverse(T_world_prev2)  # the last motion, in the world frame
     expected_world_frame = step @ step @ step @ T_world_prev1
     np.testing.assert_allclose(after_gap[-1], se3_inverse(expected_world_frame) @ T_world_ref, atol=1e-9)
     assert len(after_gap) == len(regular) + 1
     np.testing.assert_allclose(np.array(after_gap[:-1]), np.array(regular))  # DSO's guesses first, unchanged
+
+
+def test_after_a_jump_the_next_frame_moves_at_the_jump_s_velocity_not_by_the_whole_jump():
+    T_world_ref = pose()
+    T_world_prev2 = pose((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    T_world_prev1 = pose((0.0, 0.09, 0.0), (0.0, 0.0, 0.9))  # 9 frame intervals between the two
+    hypotheses = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02, time_ratio=1.0 / 9.0)
+    regular = motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, 0.02)
+    assert len(hypotheses) == len(regular)
+    T_world_frame = T_world_ref @ se3_inverse(hypotheses[0])
+    step = se3_inverse(T_world_prev1) @ T_world_frame
+    # One ninth of the last motion (DSO would repeat all of it): nine such steps make the jump.
+    np.testing.assert_allclose(np.linalg.matrix_power(step, 9), se3_inverse(T_world_prev2) @ T_world_prev1, atol=1e-9)

@@ -60,9 +60,10 @@ class TrackerConfig:
     scale_b: float = 1000.0  # SCALE_B
     retrack_threshold: float = 1.5  # setting_reTrackThreshold: accept a hypothesis within 1.5x last RMSE
     rotation_perturbation: float = 0.02  # trackNewCoarse: quaternion components +-0.02 (~2.3 degrees)
-    # Ours: a frame further from the last tracked one than 1.5 of the last frame intervals comes after missed
-    # frames (a driver's drop, --drop); the constant velocity over the time that passed is tried after DSO's
-    # guesses (motion_model.py says why). Regular timestamps (jitter well under half an interval) never trigger it.
+    # Ours: a frame further from the last tracked one than 1.5 times the interval between the last two comes after
+    # missed frames (a driver's drop, --drop), one nearer than 1/1.5 of it after a jump: the motion hypotheses then
+    # take the time into account (motion_model.py). Regular timestamps (jitter well under half an interval) never
+    # trigger it.
     time_gap_factor: float = 1.5
     flow_sample_stride: int = 32  # calcRes: every 32nd point feeds the optical-flow indicators
     min_points_in_view: int = 20  # fewer valid residual terms than this at the finest level = failure

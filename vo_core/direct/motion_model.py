@@ -48,28 +48,39 @@ def _rotation_perturbations(delta: float) -> list[np.ndarray]:
 
 def motion_hypotheses(
     T_world_prev2: np.ndarray | None, T_world_prev1: np.ndarray, T_world_ref: np.ndarray, rotation_delta: float,
-    intervals_elapsed: float | None = None,
+    time_ratio: float | None = None,
 ) -> list[np.ndarray]:
     """Guesses of T_frame_ref for the next frame, most likely first.
 
     ``T_world_prev1`` / ``T_world_prev2`` are the last and second-to-last tracked frames, ``T_world_ref`` the
-    reference keyframe. Without a second-to-last frame only zero motion is tried. ``intervals_elapsed``: the
-    timestamps say that this many of the last frame intervals passed (frames were missed); the last motion
-    repeated that many times comes last (ours: DSO assumes every frame arrives)."""
+    reference keyframe. Without a second-to-last frame only zero motion is tried.
+
+    ``time_ratio``: the time since the last tracked frame over the time between the last two, given where the
+    timestamps say frames were missed (ours: DSO assumes every frame arrives). Below 1, the last motion spanned
+    missed frames: its velocity over the time that passed replaces it (repeating a 9-frame jump as the next
+    frame's motion sent KITTI's scale off by 3x). Above 1, frames are missed now: the last motion over the time
+    that passed is tried after DSO's guesses."""
     T_prev1_ref = se3_inverse(T_world_prev1) @ T_world_ref
     if T_world_prev2 is None:
         return [T_prev1_ref, np.eye(4)]
     # The last inter-frame motion, assumed to repeat: T_prev2_prev1 ~ T_prev1_frame.
     T_frame_prev1 = se3_inverse(se3_inverse(T_world_prev2) @ T_world_prev1)
+    if time_ratio is not None and time_ratio < 1.0:
+        T_frame_prev1 = _scaled(T_frame_prev1, time_ratio)
     constant = T_frame_prev1 @ T_prev1_ref
     hypotheses = [
         constant,
         T_frame_prev1 @ T_frame_prev1 @ T_prev1_ref,  # a frame was skipped
-        se3_exp(0.5 * se3_log(T_frame_prev1)) @ T_prev1_ref,  # half motion
+        _scaled(T_frame_prev1, 0.5) @ T_prev1_ref,  # half motion
         T_prev1_ref,  # zero motion
         np.eye(4),  # zero motion from the keyframe
     ]
     hypotheses += [constant @ se3(R, np.zeros(3)) for R in _rotation_perturbations(rotation_delta)]
-    if intervals_elapsed is not None:
-        hypotheses.append(se3_exp(intervals_elapsed * se3_log(T_frame_prev1)) @ T_prev1_ref)
+    if time_ratio is not None and time_ratio > 1.0:
+        hypotheses.append(_scaled(T_frame_prev1, time_ratio) @ T_prev1_ref)
     return hypotheses
+
+
+def _scaled(T: np.ndarray, factor: float) -> np.ndarray:
+    """The motion ``T`` at ``factor`` times its velocity (along its geodesic)."""
+    return se3_exp(factor * se3_log(T))

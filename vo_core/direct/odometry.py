@@ -261,7 +261,7 @@ class DirectOdometry:
             previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
             hypotheses = motion_hypotheses(
                 previous2, self.history[-1].T_world_cam, reference.T_world_cam,
-                self.config.tracker.rotation_perturbation, self._frames_elapsed(frame),
+                self.config.tracker.rotation_perturbation, self._time_ratio(frame),
             )
         best, prior_rmse, achieved, tried = self._best_hypothesis(
             frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
@@ -273,17 +273,20 @@ class DirectOdometry:
             _ms_since(start),
         )
 
-    def _frames_elapsed(self, frame: DirectFrame) -> float | None:
-        """How many of the last frame intervals passed since the last tracked frame, when that is more than
-        ``tracker.time_gap_factor`` (frames were missed: dropped by a driver or on purpose); None otherwise, and
-        when the timestamps do not say (two tracked frames needed, time going forward)."""
+    def _time_ratio(self, frame: DirectFrame) -> float | None:
+        """The time since the last tracked frame over the time between the last two, where it says frames were
+        missed (outside ``tracker.time_gap_factor`` either way: a driver's drop, --drop, or the jump before the
+        last frame); None otherwise, and where the timestamps cannot say (fewer than two tracked frames, time
+        not going forward)."""
         if len(self.history) < 2:
             return None
         interval = self.history[-1].timestamp - self.history[-2].timestamp
         elapsed = frame.timestamp - self.history[-1].timestamp
-        if interval <= 0 or elapsed <= interval * self.config.tracker.time_gap_factor:
+        if interval <= 0 or elapsed <= 0:
             return None
-        return elapsed / interval
+        ratio = elapsed / interval
+        factor = self.config.tracker.time_gap_factor
+        return ratio if ratio > factor or ratio < 1.0 / factor else None
 
     def accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
         """Commit a converged tracking: the frame's pose, the immature points traced in it, and a new keyframe

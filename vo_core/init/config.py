@@ -33,9 +33,6 @@ class GeometricBAConfig:
     max_iterations: int = 20  # Levenberg-Marquardt iterations per adjustment (ours)
     severe_outlier_px: float = 8.0  # 3.2: "severe" outliers, removed and re-adjusted until none (value ours)
     outlier_px: float = 3.0  # 3.2: afterwards "normal" outliers beyond 3 px are removed too
-    # ORB-SLAM2 CreateInitialMapMonocular: a start whose global bundle adjustment leaves fewer than 100 tracked
-    # points is reset ("Wrong initialization").
-    min_points: int = 100
 
 
 @dataclass

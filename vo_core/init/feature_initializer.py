@@ -8,7 +8,7 @@
    model's inliers, one clearly best decomposition); no model is chosen where neither clearly wins (R_H between
    ORB-SLAM's two thresholds, 0.40 and 0.45).
 3. Geometric bundle adjustment over every frame of the window with severe- and normal-outlier removal
-   (3.2, vo_core/init/geometric_ba.py); fewer than 100 points left is a wrong start (ORB-SLAM2).
+   (3.2, vo_core/init/geometric_ba.py); fewer than 50 points left is a wrong start.
 4. DSO-selected pixels of the reference frame get inverse depths by epipolar line search through the window
    and Gaussian fusion, the adjusted feature points around them as prior (3.3,
    vo_core/init/semi_dense_depth.py); the features themselves are handed over too.
@@ -157,7 +157,10 @@ class FeatureInitializer:
             "tracks_kept": window.shape[1], "triangulated": int(good.sum()), "severe_outliers": estimate.severe_removed,
             "outliers": estimate.outliers_removed, "points": kept, "reprojection_rms_px": round(estimate.rms_px, 3),
         }
-        if kept < self.config.geometric_ba.min_points:
+        # ORB-SLAM2 resets a start left with fewer than 100 of its 1000-2000 features; this initializer tracks
+        # 100-600 corners (VAMR parking: about 100, where 100 refused every start until frame 22), so the floor is
+        # the two-view rule's 50 and the check after the hand-over (start_check.py) catches what passes it wrongly.
+        if kept < self.config.two_view.min_triangulated:
             self._reject(f"{kept} points left after the bundle adjustment", **model_details, **ba_details)
             return None
         uv_features = observations[0][estimate.keep]
