@@ -10,6 +10,7 @@ import pytest
 from app.cli import main
 from app.experiments.common import Setup, open_source, truth_at_frames
 from app.experiments.frame_drop import Protocol, sweep
+from app.experiments.timing import process_samples, table
 from app.experiments.two_loop import loop_shift, loop_spans, looped_truth
 from vo_core.config import DatasetConfig, load_config
 from vo_core.eval import EvalConfig, ground_truth_gap_end, loop_drifts
@@ -202,6 +203,31 @@ def test_tum_mono_start_and_end_segments_are_read_as_they_are(tmp_path):
     poses = [seen_through(T, S_EST_GT @ D if end else S_EST_GT) for T, end in zip(truth.poses, in_end)]
     first = loop_drifts(Trajectory(truth.timestamps, poses), truth, spans, config)[0]
     assert first.scale_drift == pytest.approx(1 / 0.8) and first.rotation_drift_deg == pytest.approx(4.0)
+
+
+# --------------------------------------------------------------------------------------------------- timings
+
+
+def timed(index: int, **timings_ms: float) -> FrameResult:
+    return FrameResult(index, index / 30, np.eye(4), True, timings_ms=timings_ms)
+
+
+def test_table_2_samples_each_process_in_the_frames_it_ran_in():
+    results = [timed(0, pyramid=1.0, track=4.0, total=5.0),
+               timed(1, pyramid=1.0, track=5.0, recovery=20.0, total=26.0),
+               timed(2, pyramid=1.0, track=3.0, keyframe=40.0, feature_mapping=150.0, total=194.0)]
+    samples = process_samples("fdmo", results)
+    assert samples["tracking (per frame)"] == [5.0, 26.0, 4.0]  # FDMO counts its recovery as tracking
+    assert samples["direct mapping (per keyframe)"] == [40.0]
+    assert samples["feature mapping (per keyframe)"] == [150.0]
+    assert samples["recovery (per attempt)"] == [20.0]
+    assert samples["whole frame"] == [5.0, 26.0, 194.0]
+    direct = process_samples("direct", results[:1])
+    assert "feature mapping (per keyframe)" not in direct and direct["direct mapping (per keyframe)"] == []
+    lines = table({"fdmo": samples, "direct": direct}).splitlines()
+    assert lines[0] == "| process (ms) | fdmo | direct |"
+    assert "| direct mapping (per keyframe) | 40.00 +- 0.00 (1) | never ran |" in lines
+    assert "| feature mapping (per keyframe) | 150.00 +- 0.00 (1) | - |" in lines
 
 
 # --------------------------------------------------------------------------------------------- the commands

@@ -252,7 +252,8 @@ def summary_table(rows: list[dict], protocol: Protocol) -> str:
     for (method, direction, at), trials in _sweeps(rows).items():
         survived = [trial for trial in trials if trial["survived"]]
         last = trials[-1]
-        ended = "frames ran out" if last["survived"] else f"{last['frames']} frames ({_motion(last)}): {last['outcome']}"
+        ended = ("frames ran out" if last["survived"]
+                 else f"{last['frames']} frames ({_motion(last)}): {last['outcome']}")
         lines.append((method, direction, at, len(trials), survived[-1]["frames"] if survived else "-",
                       _motion(survived[-1]) if survived else "-", ended))
     header = ("method", "direction", "at frame", "trials", "survived up to (frames)", "true motion survived",
@@ -276,26 +277,36 @@ def _motion(row: dict) -> str:
 
 def plot(rows: list[dict], protocol: Protocol, title: str):
     """FDMO Fig. 6: % error against the true motion, translation (m) and rotation (deg), a row per direction and a
-    curve per method and jump frame; trials that failed marked x (at the top when nothing was measured)."""
+    curve per method and jump frame; trials that failed marked x (at the top when nothing was measured). The
+    rotation panels leave out jumps that turned less than the rotation tolerance: their % means nothing."""
     directions = [direction for direction in DIRECTIONS if any(row["direction"] == direction for row in rows)]
     canvas = figure(11, 4 * max(len(directions), 1))
     panels = canvas.subplots(max(len(directions), 1), 2, squeeze=False)
     top = 3 * protocol.max_error_pct  # errors above are drawn at the top edge
-    columns = (("gt_translation_m", "translation_error_pct", "translation", "true translation [m]"),
-               ("gt_rotation_deg", "rotation_error_pct", "rotation", "true rotation [deg]"))
+    columns = (("gt_translation_m", "translation_error_pct", "translation", "true translation [m]", 0.0),
+               ("gt_rotation_deg", "rotation_error_pct", "rotation",
+                f"true rotation [deg] (jumps under {protocol.rotation_tolerance_deg:g} deg left out)",
+                protocol.rotation_tolerance_deg))
     for panel_row, direction in zip(panels, directions):
         sweeps = {key: trials for key, trials in _sweeps(rows).items() if key[1] == direction}
-        for panel, (x_key, y_key, quantity, label) in zip(panel_row, columns):
+        for panel, (x_key, y_key, quantity, label, least) in zip(panel_row, columns):
             for color, ((method, _, at), trials) in enumerate(sweeps.items()):
-                x = np.array([trial[x_key] for trial in trials])
-                y = np.array([np.nan if trial[y_key] is None else trial[y_key] for trial in trials], dtype=float)
-                y = np.minimum(np.nan_to_num(y, nan=top, posinf=top), top)
-                survived = np.array([trial["survived"] for trial in trials])
-                panel.plot(x[survived], y[survived], "o-", color=f"C{color}", ms=4, label=f"{method} @ {at}")
-                panel.plot(x[~survived], y[~survived], "x", color=f"C{color}", ms=8, mew=2)
+                _curve(panel, [trial for trial in trials if trial[x_key] >= least], x_key, y_key, top, color,
+                       f"{method} @ {at}")
             panel.axhline(protocol.max_error_pct, color="k", lw=0.8, ls="--")
             panel.set(xlabel=label, ylabel="% error", ylim=(0, top * 1.05), title=f"{direction} jumps: {quantity}")
             panel.legend(fontsize="small")
     canvas.suptitle(f"{title}: frame drops (x: failed; dashed: {protocol.max_error_pct:g} %)", fontsize="medium")
     return canvas
 
+
+def _curve(panel, trials: list[dict], x_key: str, y_key: str, top: float, color: int, label: str) -> None:
+    """One sweep: the trials survived joined by a line, those failed as x; errors above ``top`` (or none
+    measured) at ``top``."""
+    x = np.array([trial[x_key] for trial in trials], dtype=float)
+    y = np.array([np.nan if trial[y_key] is None else trial[y_key] for trial in trials], dtype=float)
+    y = np.minimum(np.nan_to_num(y, nan=top, posinf=top), top)
+    survived = np.array([trial["survived"] for trial in trials], dtype=bool)
+    size = 9 - 2 * (color % 3)  # methods with the same numbers stay visible under one another
+    panel.plot(x[survived], y[survived], "o-", color=f"C{color}", ms=size / 2 + 2, label=label)
+    panel.plot(x[~survived], y[~survived], "x", color=f"C{color}", ms=size, mew=2)

@@ -50,6 +50,7 @@ PROCESSES = {
 # the method takes per frame.
 WARMUP_FRAMES = 20
 
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """No options beyond the common ones."""
 
@@ -80,6 +81,7 @@ def process_samples(method: str, results: list[FrameResult]) -> dict[str, list[f
             samples[process] = [sum(result.timings_ms.get(stage, 0.0) for stage in stages)
                                 for result in results if marker in result.timings_ms]
     return samples
+
 
 def table(samples: dict[str, dict[str, list[float]]]) -> str:
     """Processes down, methods across: mean +- standard deviation (ms) and the number of samples."""
