@@ -7,6 +7,9 @@ dropped at frame 100: RMSE 15.6 -> 13.5, ratio 0.87, a pose 20 cm off). DSO itse
 then: it tried every motion hypothesis and none came within ``retrack_threshold`` (1.5) of the last frame's
 RMSE (trackNewCoarse's stopping rule). That is not proof of divergence (fast handheld motion does it in 4 % of
 teddy's frames), so such a result is SUSPECT: the system has it checked by the feature map, which decides.
+So is every result after missed frames (the timestamps say so): the motion across the gap is unknown, and a
+converged alignment with a fair RMSE proves little there (teddy, 45 frames dropped: 14 of 27 degrees found, RMSE
+within the retrack threshold, ratio below 1.1).
 A result that did not converge at all is LOST (DSO's lost: no hypothesis converged, too few residuals).
 """
 
@@ -33,6 +36,7 @@ class Verdict(Enum):
 class DivergenceConfig:
     epsilon: float = 0.1  # FDMO 4.2.1: diverged when RMSE_after / RMSE_before > 1 + 0.1
     check_when_no_hypothesis_good_enough: bool = True  # ours (DSO's reTrackThreshold as a suspicion, see above)
+    check_after_missed_frames: bool = True  # ours (see above; direct.tracker.time_gap_factor says what is missed)
 
 
 @dataclass
@@ -61,6 +65,9 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
     if config.check_when_no_hypothesis_good_enough and not tracking.good_enough:
         reason = (f"no motion hypothesis ({tracking.hypotheses_tried} tried) came within the retrack threshold of "
                   f"the last frame's RMSE ({tracking.rmse_after:.2f} against {tracking.last_rmse:.2f})")
+        return Judgement(Verdict.SUSPECT, ratio, threshold, reason)
+    if config.check_after_missed_frames and tracking.intervals_missed is not None:
+        reason = f"{tracking.intervals_missed:.1f} frame intervals since the last tracked frame: frames were missed"
         return Judgement(Verdict.SUSPECT, ratio, threshold, reason)
     return Judgement(Verdict.TRUSTED, ratio, threshold, "")
 

@@ -155,6 +155,7 @@ class DirectTracking:
     hypotheses_tried: int
     from_prior: bool  # tracked from a given pose rather than the motion model
     ms: float
+    intervals_missed: float | None = None  # frame intervals since the last tracked frame, when frames were missed
 
     @property
     def converged(self) -> bool:
@@ -255,13 +256,14 @@ class DirectOdometry:
         state: ``accept`` commits the result."""
         start = time.perf_counter()
         reference = self.newest_keyframe
+        time_ratio = self._time_ratio(frame)
         if T_world_cam_prior is not None:
             hypotheses = [se3_inverse(T_world_cam_prior) @ reference.T_world_cam]
         else:
             previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
             hypotheses = motion_hypotheses(
                 previous2, self.history[-1].T_world_cam, reference.T_world_cam,
-                self.config.tracker.rotation_perturbation, self._time_ratio(frame),
+                self.config.tracker.rotation_perturbation, time_ratio,
             )
         best, prior_rmse, achieved, tried = self._best_hypothesis(
             frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
@@ -270,7 +272,7 @@ class DirectOdometry:
         good_enough = bool(achieved[0] < last_rmse * self.config.tracker.retrack_threshold)
         return DirectTracking(
             reference, best, prior_rmse, achieved, last_rmse, good_enough, tried, T_world_cam_prior is not None,
-            _ms_since(start),
+            _ms_since(start), time_ratio if time_ratio is not None and time_ratio > 1.0 else None,
         )
 
     def _time_ratio(self, frame: DirectFrame) -> float | None:
