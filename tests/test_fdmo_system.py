@@ -111,3 +111,12 @@ def test_the_frame_after_missed_frames_is_checked_by_the_feature_map():
     assert checked.T_world_cam is not None  # the feature map agreed
     unchecked = first_after_gap(["fdmo.divergence.check_after_missed_frames=false"])
     assert not [e for e in unchecked.events if e.kind in (EventKind.TRACKING_CHECKED, EventKind.DIVERGENCE_DETECTED)]
+
+
+def test_direct_alone_reports_the_frame_after_missed_frames():
+    odometry = Odometry(load_config(overrides=["method=direct"]), CAMERA)
+    results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < FAULT_START + 3]
+    after = next(r for r in results if r.frame_index == FAULT_START + 3)
+    reported = [e for e in after.events if e.kind is EventKind.DIVERGENCE_DETECTED]
+    assert reported and "frames were missed" in reported[0].details["reason"]
+    assert after.T_world_cam is not None  # kept: nothing can check it
