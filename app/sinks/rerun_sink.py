@@ -32,7 +32,8 @@ Entities (the 3D world is the estimate's: the first camera's frame, x right, y d
     plots/tracking/*, plots/counts/*, plots/timing_ms/*   scalars (rmse before/after, counts, ms per stage)
 
 Cost: one JPEG encode and four log calls per frame (~3 ms for 640x480 on one core); scalars are buffered and
-sent as columns, the whole path, the clouds and the keyframes only at keyframes.
+sent as columns every SCALAR_COLUMN_FRAMES frames, the whole path, the clouds and the keyframes only at
+keyframes.
 """
 
 from __future__ import annotations
@@ -98,6 +99,15 @@ TIMING_PLOTS = "plots/timing_ms"
 
 JPEG_QUALITY = 75  # issue 6: about 5x smaller than raw images, at no cost in speed
 FULL_PATH_EVERY = 30  # frames: relog the whole path at least this often when no keyframe comes
+# frames of scalars sent as one column per entity: each send is a chunk per entity, and the SDK's file sink keeps an
+# index entry per chunk (the .rrd footer's manifest) until the recording closes, as wide as the recording's
+# timelines x components (~3.5 KiB a chunk): at every keyframe, ~2,200 chunks and ~7 MiB per 1,000 frames (issue 17)
+SCALAR_COLUMN_FRAMES = 250
+# The SDK's batcher makes a chunk per entity each flush_tick (200 ms by default): at the odometry's few frames a second
+# that is a chunk per entity per frame, each indexed in memory until the end (above). Larger batches: a chunk per
+# entity every BATCH_SECONDS or BATCH_BYTES (what a viewer following the file lags behind, what waits in memory).
+BATCH_SECONDS = 2.0
+BATCH_BYTES = 8 * 2**20
 POINT_RADIUS_UI = 1.5  # map points, in UI points (constant size on screen whatever the scale)
 MARKER_RADIUS_UI = 6.0
 PATH_RADIUS_UI = 1.5
@@ -130,7 +140,8 @@ class RerunSink:
     def _start_recording(self) -> None:
         """A new recording (a new recording id) for the next pass, and the state of a pass."""
         self.passes += 1
-        self.recording = rr.RecordingStream(self.application_id)
+        self.recording = rr.RecordingStream(self.application_id, batcher_config=rr.ChunkBatcherConfig(
+            flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES))
         if self.recording_name:
             suffix = f" (pass {self.passes})" if self.passes > 1 else ""
             self.recording.send_recording_name(self.recording_name + suffix)
@@ -168,7 +179,8 @@ class RerunSink:
         self._log_markers(result.T_world_cam[:3, 3] if result.T_world_cam is not None
                           else self.history.last_position())
         self._add_scalars(result)
-        if self._log_path(force_full=result.is_keyframe):
+        self._log_path(force_full=result.is_keyframe)
+        if self._scalars.frames() >= SCALAR_COLUMN_FRAMES:
             self._scalars.send(self.recording)
         self._step += 1
 
@@ -353,13 +365,18 @@ def _transform(T_world_cam: np.ndarray) -> rr.Transform3D:
 
 class _ScalarColumns:
     """Scalars buffered per entity and sent as columns (one send_columns per entity, not one log per value):
-    a log call costs ~0.3 ms, a dozen per frame would cost more than the rest of the sink."""
+    a log call costs ~0.3 ms, a dozen per frame would cost more than the rest of the sink; and each send is a chunk
+    per entity, which the SDK indexes in memory until the recording closes (SCALAR_COLUMN_FRAMES)."""
 
     def __init__(self) -> None:
         self._rows: dict[str, list[tuple[int, float, int, float]]] = defaultdict(list)
 
     def add(self, entity: str, frame_index: int, timestamp: float, step: int, value: float) -> None:
         self._rows[entity].append((int(frame_index), float(timestamp), int(step), float(value)))
+
+    def frames(self) -> int:
+        """The most values buffered for one entity: about the frames since the last send."""
+        return max((len(rows) for rows in self._rows.values()), default=0)
 
     def send(self, recording: rr.RecordingStream) -> None:
         for entity, rows in self._rows.items():
