@@ -5,6 +5,8 @@
         [--synthetic smooth forward planar] [--frames 1000] [--seeds 0 1 2 3 4] [--set KEY=VALUE ...]
         [--dso PATH/TO/dso_headless --dso-runs 3 --work DIR]
 
+It runs the configured method (fdmo unless ``--set method=direct``; ``--no-fdmo``: none, DSO only).
+
 A folder of N frames becomes a sequence of 2N - 1 frames: 0 .. N-1, then N-2 .. 0, renumbered and re-timed so
 that indices and timestamps increase (the median frame period of the folder); its ground truth is the folder's
 pose of each original frame at the new timestamps (nearest within 20 ms). The frames are the project's
