@@ -23,7 +23,9 @@ class ChromiumPage:
     """One tab of a headless Chromium started for it; ``close()`` ends that Chromium (by its process id)."""
 
     def __init__(self, url: str):
-        self._profile = tempfile.TemporaryDirectory()
+        # Chromium's helper processes can still write into the profile as the main one exits (CI saw rmtree fail
+        # on a directory not empty): what is left of a scratch profile must not fail a test.
+        self._profile = tempfile.TemporaryDirectory(ignore_cleanup_errors=True)
         log = Path(self._profile.name) / "chromium.log"
         self._log = open(log, "w")
         self.process = subprocess.Popen(
