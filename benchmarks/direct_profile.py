@@ -1,6 +1,6 @@
 """Time per frame of the direct odometry by stage, over repeated runs, with an optional pyinstrument profile.
 
-    python3 benchmarks/direct_profile.py /work/shared/data/tum_fr3_teddy_first200 [--end N] [--repeats 3]
+    python3 benchmarks/direct_profile.py ../shared/data/tum_fr3_teddy_first200 [--end N] [--repeats 3]
         [--clock cpu] [--set direct.window.enabled=false ...] [--pyinstrument profile.html] [--save poses.npz]
 
 Frames are read once into memory, the first frames are run once untimed (numba loads its cached kernels on

@@ -1,7 +1,7 @@
 """The odometry on real sequences: ATE, frames tracked, and time by stage (the configured method; ``--set
 method=direct`` for the direct half alone).
 
-    python3 benchmarks/direct_real.py /work/shared/data/tum_fr3_teddy_first200 [more folders] [--end N]
+    python3 benchmarks/direct_real.py ../shared/data/tum_fr3_teddy_first200 [more folders] [--end N]
         [--set direct.window.enabled=false ...] [--seeds 0 1 2 3 4] [--profile profile.html]
 
 Frames come from the project's loaders (vo_core.datasets.open_sequence) and go straight into the system

@@ -30,7 +30,7 @@ from vo_core.datasets import open_sequence  # noqa: E402
 from vo_core.synthetic import make_sequence  # noqa: E402
 from vo_core.synthetic.faults import Fault, inject, write_tum_rgbd  # noqa: E402
 
-SHARED_DATA = Path("/work/shared/data")
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # ../shared/data beside the repository
 FOLDERS = ("tum_fr3_teddy_first200", "kitti00_first100", "vamr_parking_first200")
 SYNTHETIC = "synthetic"
 SYNTHETIC_FRAMES, SYNTHETIC_SIZE = 120, (320, 240)

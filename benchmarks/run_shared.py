@@ -1,4 +1,4 @@
-"""Run one method over the real sequences of /work/shared/data and tabulate the results (for BENCHMARKS.md).
+"""Run one method over the real sequences of ../shared/data and tabulate the results (for BENCHMARKS.md).
 
     python3 benchmarks/run_shared.py --method direct
     python3 benchmarks/run_shared.py --method klt --config configs/klt/tum.yaml --set klt.window_ba=false
@@ -23,7 +23,7 @@ from app.pipeline import RunSummary, open_dataset, run_sequence  # noqa: E402
 from vo_core.config import METHODS, load_config  # noqa: E402
 from vo_core.errors import InputError  # noqa: E402
 
-SHARED_DATA = Path("/work/shared/data")
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # ../shared/data beside the repository
 SEQUENCES = ("tum_fr3_teddy_first200", "kitti00_first100", "vamr_parking_first200", "euroc_v101_micro_static")
 HEADER = ("sequence", "frames", "tracked", "init frame", "ATE m", "ms/frame")
 

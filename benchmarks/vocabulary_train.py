@@ -35,7 +35,7 @@ from vo_core.features.vocabulary import (
 )
 from vo_core.synthetic import make_sequence
 
-DATA = Path("/work/shared/data")
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"  # ../shared/data beside the repository
 # folder name -> (images folder inside it, training stride: every 2nd-5th frame, about 50 images per folder)
 FOLDERS = {
     "tum_fr3_teddy_first200": ("rgb", 4),
