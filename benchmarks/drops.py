@@ -8,7 +8,7 @@ Each row is one run of the whole sequence with frames AT..AT+COUNT-1 left out (C
 the Sim(3)-aligned RMSE of every posed frame (one alignment for the whole run: a new scale after the drop shows
 as a large ATE); "ratio" is that ATE over the clean run's. The motion across the drop is the ground truth's
 between the last frame before and the first after (translation m, rotation deg, FDMO 5.3.2's measures). The
-events column counts divergence_detected / recovery_succeeded / recovery_failed / direct_restarted /
+events column counts divergence_detected / recovery_succeeded / recovery_failed / direct_resumed / direct_restarted /
 reinitialization; "posed" is how many of the frames the odometry saw got a pose.
 """
 
@@ -29,7 +29,8 @@ from vo_core.eval.metrics import evaluate, frame_drop_error  # noqa: E402
 from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
-REPORTED = ("divergence_detected", "recovery_succeeded", "recovery_failed", "direct_restarted", "reinitialization")
+REPORTED = ("divergence_detected", "recovery_succeeded", "recovery_failed", "direct_resumed", "direct_restarted",
+            "reinitialization")
 
 
 def run(sequence, method: str, at: int, count: int, overrides: list[str]) -> tuple[float, int, int, Counter]:

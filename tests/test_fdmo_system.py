@@ -120,3 +120,23 @@ def test_direct_alone_reports_the_frame_after_missed_frames():
     reported = [e for e in after.events if e.kind is EventKind.DIVERGENCE_DETECTED]
     assert reported and "frames were missed" in reported[0].details["reason"]
     assert after.T_world_cam is not None  # kept: nothing can check it
+
+
+def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_goes_on(clean_ate):
+    """A suspect pose the feature map is made to disagree with (agreement above 100 %) is recovered; direct
+    alignment from the recovered pose ends where the motion model's did, so the direct pose was right: tracking
+    goes on in the same window (no restart, no new map). With the tolerance at 0 px the map restarts instead."""
+    def after_gap(overrides):
+        odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", *overrides]), CAMERA)
+        results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < FAULT_START + 3]
+        return next(r for r in results if r.frame_index == FAULT_START + 3), results
+
+    resumed, results = after_gap([])
+    happened = [e.kind for e in resumed.events]
+    assert EventKind.RECOVERY_SUCCEEDED in happened and EventKind.DIRECT_RESUMED in happened
+    assert EventKind.DIRECT_RESTARTED not in kinds(results) and EventKind.REINITIALIZATION not in kinds(results)
+    restarted, _ = after_gap(["fdmo.same_optimum_px=0"])
+    assert EventKind.DIRECT_RESTARTED in [e.kind for e in restarted.events]
+    posed = [r for r in results if r.T_world_cam is not None]
+    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 1.5 * clean_ate + 1e-3

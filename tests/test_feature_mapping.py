@@ -195,3 +195,43 @@ def test_recovery_searches_around_the_system_estimate_when_no_candidate_gives_a_
     assert not relocalizer.recover(feature_map, frame.image, last_keyframe).succeeded
     far = frame.T_world_cam @ se3(se3_exp(np.array([0, 0, 0, 0.0, 0.5, 0.0]))[:3, :3], np.zeros(3))
     assert not relocalizer.recover(feature_map, frame.image, last_keyframe, far).succeeded
+
+
+def test_a_search_at_a_known_pose_is_judged_by_its_share_not_by_a_recoverys_count():
+    """A recovery from nothing needs FDMO's 30 inliers; a search around the system's estimate needs a larger share
+    of the points in view but only ORB-SLAM2's tracking count (after a long forward drop few points are in front)."""
+    from vo_core.features.recovery import ESTIMATE, LOCAL, PoseFromMap, Relocalizer
+
+    config = FeatureConfig()
+    relocalizer = Relocalizer(config, CAMERA, load_vocabulary())
+
+    def pose(inliers: int, in_view: int) -> PoseFromMap:
+        ids = np.arange(inliers)
+        return PoseFromMap(np.eye(4), ids, ids, np.ones(inliers, bool), in_view)
+
+    few_but_most = pose(config.recovery.min_inliers - 9, 130)  # 16 %: KITTI's right estimate after an 11 m drop
+    assert relocalizer.accepted(few_but_most, ESTIMATE) and not relocalizer.accepted(few_but_most, LOCAL)
+    many_but_few = pose(93, 1755)  # 5.3 %: teddy's wrong estimate after a 30-frame drop
+    assert relocalizer.accepted(many_but_few, LOCAL) and not relocalizer.accepted(many_but_few, ESTIMATE)
+    assert not relocalizer.accepted(pose(config.recovery.min_inliers_around_estimate - 1, 20), ESTIMATE)
+
+
+def test_the_reprojection_shift_between_two_poses_is_what_the_image_sees(smooth_map):
+    from vo_core.features.feature_odometry import FeatureOdometry
+    from vo_core.features.recovery import PoseFromMap
+    from vo_core.geometry.lie import se3
+
+    feature_map, _, frames = smooth_map
+    odometry = FeatureOdometry(FeatureConfig(), CAMERA)
+    odometry.map = feature_map
+    keyframe = max(frames)
+    T_world_cam = SEQUENCE[keyframe].T_world_cam
+    ids = np.flatnonzero(feature_map.points.alive)
+    in_cam = transform_points(se3_inverse(T_world_cam), feature_map.points.position[ids])
+    ids = ids[in_cam[:, 2] > 0]
+    pose = PoseFromMap(T_world_cam, ids, ids, np.ones(len(ids), bool))
+    assert odometry.reprojection_shift(pose, T_world_cam, T_world_cam) == 0.0
+    depth = np.median(in_cam[in_cam[:, 2] > 0, 2])
+    sideways = T_world_cam @ se3(np.eye(3), np.array([0.01 * depth, 0.0, 0.0]))
+    # a sideways step of 1 % of the median depth moves the points by about 1 % of the focal length
+    assert 0.5 * 0.01 * CAMERA.fx < odometry.reprojection_shift(pose, T_world_cam, sideways) < 2 * 0.01 * CAMERA.fx

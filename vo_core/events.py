@@ -29,6 +29,7 @@ class EventKind(str, Enum):
     RECOVERY_TRIED = "recovery_tried"  # FDMO 4.2.2 started: the candidates it will try
     RECOVERY_SUCCEEDED = "recovery_succeeded"
     RECOVERY_FAILED = "recovery_failed"
+    DIRECT_RESUMED = "direct_resumed"  # direct tracking goes on in the same window from a recovered pose
     DIRECT_RESTARTED = "direct_restarted"  # the direct map starts over at a recovered pose, same scale
     FEATURE_TRACKING = "feature_tracking"  # a frame posed by the feature map while direct tracking is not back
     REINITIALIZATION = "reinitialization"  # the last resort: a new map at a new scale

@@ -69,6 +69,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.RECOVERY_TRIED: EventStyle("INFO", (240, 220, 40)),
     EventKind.RECOVERY_SUCCEEDED: EventStyle("INFO", (0, 210, 210)),
     EventKind.RECOVERY_FAILED: EventStyle("ERROR", (200, 0, 60)),
+    EventKind.DIRECT_RESUMED: EventStyle("INFO", (0, 200, 140)),
     EventKind.DIRECT_RESTARTED: EventStyle("WARN", (0, 150, 255)),
     EventKind.FEATURE_TRACKING: EventStyle("INFO", FEATURE_POINT_COLOR),
     EventKind.REINITIALIZATION: EventStyle("WARN", (220, 60, 220)),

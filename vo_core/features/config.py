@@ -97,6 +97,11 @@ class RecoveryConfig:
     # estimate 16 cm off gathered 93 inliers, 5.3 %; KITTI, 7 m dropped: a right one 21 %, teddy's right
     # recoveries 13-15 %).
     min_found_fraction_around_estimate: float = 0.10
+    # ... and, being a search at a known pose rather than a pose found from nothing, to the inliers ORB-SLAM2's
+    # TrackWithMotionModel asks after its pose optimization (nmatchesMap >= 10), not the 30 of a recovery: after a
+    # long forward drop few map points are still in front of the camera (KITTI, 11 m dropped: a right direct
+    # estimate found 21 of 134, 16 %).
+    min_inliers_around_estimate: int = 10
     # A frame with fewer ORB features than this share of OrbConfig.num_features is feature-deprived: when the
     # recovery fails there, the direct estimate is the only one left and is kept (FDMO's point: direct tracking
     # works where features do not); a textured frame the feature map does not recognize is a view the direct

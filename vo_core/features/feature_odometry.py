@@ -58,6 +58,18 @@ class FeatureOdometry:
     def explained(self, pose: PoseFromMap, T_world_cam: np.ndarray, frame: FrameFeatures) -> float:
         return self.relocalizer.explained(self.map, pose, T_world_cam, frame)
 
+    def reprojection_shift(self, pose: PoseFromMap, T_world_a: np.ndarray, T_world_b: np.ndarray) -> float:
+        """Median distance in pixels between where the pose's inlier map points appear from camera pose a and
+        from b: how far apart two poses are, in what the images can tell apart (inf with no point in front)."""
+        points = self.map.points.position[pose.point_ids[pose.inlier]]
+        in_a = transform_points(se3_inverse(T_world_a), points)
+        in_b = transform_points(se3_inverse(T_world_b), points)
+        front = (in_a[:, 2] > 0) & (in_b[:, 2] > 0)
+        if not front.any():
+            return float("inf")
+        shift = self.camera.project(in_a[front]) - self.camera.project(in_b[front])
+        return float(np.median(np.linalg.norm(shift, axis=1)))
+
     def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched:
         where a direct map restarted there gets its first depths (at the feature map's scale)."""

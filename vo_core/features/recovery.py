@@ -172,10 +172,12 @@ class Relocalizer:
         """FDMO 4.2.2's 30 inliers, and a fair share of the local map points in view found: a wrong pose can
         gather 30 consistent matches on a few far, poorly triangulated points (teddy, 30 frames dropped at 100:
         49 inliers, 2.8 % of the points in view, 33 cm off), a right one finds 14-15 % there. A search around the
-        system's estimate needs a larger share (RecoveryConfig.min_found_fraction_around_estimate)."""
+        system's estimate needs a larger share and fewer inliers (RecoveryConfig.*_around_estimate)."""
         recovery = self.config.recovery
-        share = recovery.min_found_fraction_around_estimate if stage == ESTIMATE else recovery.min_found_fraction
-        return pose.num_inliers >= recovery.min_inliers and pose.found_fraction >= share
+        if stage == ESTIMATE:
+            return (pose.num_inliers >= recovery.min_inliers_around_estimate
+                    and pose.found_fraction >= recovery.min_found_fraction_around_estimate)
+        return pose.num_inliers >= recovery.min_inliers and pose.found_fraction >= recovery.min_found_fraction
 
     def _local_candidates(self, feature_map: FeatureMap, last_keyframe: int | None) -> set[int]:
         """FDMO 4.2.2: the keyframes connected to the last direct keyframe in the covisibility graph."""
