@@ -140,3 +140,17 @@ def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_
     posed = [r for r in results if r.T_world_cam is not None]
     estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
     assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 1.5 * clean_ate + 1e-3
+
+
+def test_a_feature_pose_too_weakly_supported_does_not_overrule_the_direct_one():
+    """The feature map overrules a converged direct pose only with a conclusive share of the points in view; when
+    that share is out of reach (overrule_share 100 %) and the feature pose is made to disagree (agreement above
+    100 %), the frame after missed frames keeps its direct pose, reported as unverified, and the map goes on."""
+    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", "fdmo.overrule_share=1.0"]),
+                        CAMERA)
+    results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < FAULT_START + 3]
+    after = next(r for r in results if r.frame_index == FAULT_START + 3)
+    unverified = [e for e in after.events if e.kind is EventKind.TRACKING_UNVERIFIED]
+    assert unverified and "too weakly supported" in unverified[0].details["why"]
+    assert after.T_world_cam is not None
+    assert not {EventKind.RECOVERY_TRIED, EventKind.DIRECT_RESTARTED, EventKind.DIRECT_RESUMED} & set(kinds(results))

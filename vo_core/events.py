@@ -26,6 +26,7 @@ class EventKind(str, Enum):
     TRACKING_FAILED = "tracking_failed"
     DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps, or confirmed
     TRACKING_CHECKED = "tracking_checked"  # a suspect direct pose that the feature map confirmed
+    TRACKING_UNVERIFIED = "tracking_unverified"  # a suspect direct pose kept: the feature map too weak to overrule it
     RECOVERY_TRIED = "recovery_tried"  # FDMO 4.2.2 started: the candidates it will try
     RECOVERY_SUCCEEDED = "recovery_succeeded"
     RECOVERY_FAILED = "recovery_failed"

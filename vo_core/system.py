@@ -197,22 +197,31 @@ class Odometry:
         return self._continue_from(frame, outcome, tracking, result)
 
     def _suspect_stands(self, tracking: DirectTracking, judgement: Judgement, outcome, result: FrameResult) -> bool:
-        """Whether a suspect direct pose is kept: when the feature map finds the frame and agrees with it, or when
-        the frame has too few features to say anything (the direct estimate is then all there is: FDMO's point).
-        Otherwise the judgement gets the reason why it is not."""
+        """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
+        best candidate of one that fell short) confirms it where the two agree; it overrules it only with a
+        conclusive share of the map points in view; below that share the direct pose is kept, reported as
+        unverified. A frame with too few features to say anything keeps it too (FDMO's point: the direct estimate
+        is then all there is). Otherwise the judgement gets the reason why it is not kept."""
         check = {**judgement.details(tracking), **outcome.details()}
-        if outcome.succeeded:
-            explained = self.features.explained(outcome.pose, tracking.T_world_cam, outcome.features)
+        pose = outcome.pose
+        if pose is not None and pose.num_inliers >= self.config.features.recovery.min_ransac_inliers:
+            explained = self.features.explained(pose, tracking.T_world_cam, outcome.features)
             if explained >= self.config.fdmo.agreement:
                 _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True, "explained": round(explained, 3)})
+                return True
+            if pose.found_fraction < self.config.fdmo.overrule_share:
+                _emit(result, EventKind.TRACKING_UNVERIFIED, {
+                    **check, "explained": round(explained, 3), "why": (
+                        f"the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} of the points "
+                        f"in view) disagrees but is too weakly supported to overrule the direct one")})
                 return True
             judgement.reason += f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
             return False
         if outcome.feature_deprived:
             _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
             return True
-        # A textured view the feature map does not recognize is not one the direct map holds either: the direct
-        # alignment against that map converged somewhere, not to the camera.
+        # A textured view the feature map does not recognize at all is not one the direct map holds either: the
+        # direct alignment against that map converged somewhere, not to the camera.
         judgement.reason += "; the feature map does not recognize this textured view"
         return False
 

@@ -66,6 +66,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.TRACKING_FAILED: EventStyle("ERROR", (230, 30, 30)),
     EventKind.DIVERGENCE_DETECTED: EventStyle("WARN", (255, 120, 0)),
     EventKind.TRACKING_CHECKED: EventStyle("DEBUG", (180, 200, 120), marked=False),  # a suspicion dispelled
+    EventKind.TRACKING_UNVERIFIED: EventStyle("WARN", (255, 170, 60)),  # a suspicion neither dispelled nor confirmed
     EventKind.RECOVERY_TRIED: EventStyle("INFO", (240, 220, 40)),
     EventKind.RECOVERY_SUCCEEDED: EventStyle("INFO", (0, 210, 210)),
     EventKind.RECOVERY_FAILED: EventStyle("ERROR", (200, 0, 60)),
