@@ -6,7 +6,8 @@ each half offers steps and decides nothing:
     direct tracking from the motion model                  DirectOdometry.track (changes nothing)
     divergence test                                        direct/divergence.py: trusted, suspect, diverged, lost
     if not trusted: feature-based recovery (Fig. 3)        FeatureOdometry.recover: a pose from the feature map
-        a suspect pose the feature map agrees with is kept
+        a suspect pose the feature map agrees with is kept, and one it is too weakly anchored to overrule
+            (reported as unverified)
         else direct alignment from the recovered pose: where it ends where the motion model's did, the direct
             pose was right and the same window goes on
         else the direct map restarts at the recovered pose (refined by that alignment where it converged and
