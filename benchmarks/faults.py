@@ -44,7 +44,8 @@ HEADER = ("sequence", "fault", "method", "frames", "posed", "no pose: why", "une
           "trajectory parses", "ATE m", "vs clean m", "events", "pass")
 # Short names of the events the table counts.
 EVENT_COLUMNS = (("tracking_failed", "fail"), ("divergence_detected", "div"), ("tracking_checked", "chk"),
-                 ("recovery_succeeded", "rec"), ("recovery_failed", "rec-fail"), ("direct_restarted", "restart"),
+                 ("tracking_unverified", "unverified"), ("recovery_succeeded", "rec"), ("recovery_failed", "rec-fail"),
+                 ("direct_resumed", "resume"), ("direct_restarted", "restart"),
                  ("feature_tracking", "feat"), ("reinitialization", "reinit"), ("frame_repeated", "rep"),
                  ("frame_skipped", "skip"), ("frames_dropped", "drop"))
 

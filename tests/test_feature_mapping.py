@@ -235,3 +235,18 @@ def test_the_reprojection_shift_between_two_poses_is_what_the_image_sees(smooth_
     sideways = T_world_cam @ se3(np.eye(3), np.array([0.01 * depth, 0.0, 0.0]))
     # a sideways step of 1 % of the median depth moves the points by about 1 % of the focal length
     assert 0.5 * 0.01 * CAMERA.fx < odometry.reprojection_shift(pose, T_world_cam, sideways) < 2 * 0.01 * CAMERA.fx
+
+
+def test_a_failed_search_around_the_estimate_contradicts_it_only_where_the_map_expected_much_and_found_little():
+    from vo_core.features.recovery import PoseFromMap, RecoveryOutcome
+
+    config = FeatureConfig().recovery
+
+    def searched(inliers: int, in_view: int) -> RecoveryOutcome:
+        ids = np.arange(inliers)
+        return RecoveryOutcome(False, around_estimate=PoseFromMap(np.eye(4), ids, ids, np.ones(inliers, bool), in_view))
+
+    assert searched(5, 287).contradicts_estimate(config)  # KITTI, 60 frames dropped: a wrong direct pose
+    assert not searched(5, 49).contradicts_estimate(config)  # KITTI, 20 dropped: few points expected, 10 % found
+    assert not searched(30, 287).contradicts_estimate(config)  # 10 % found
+    assert not RecoveryOutcome(False).contradicts_estimate(config)  # no search ran: nothing says anything

@@ -201,8 +201,9 @@ class Odometry:
         """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
         best candidate of one that fell short) confirms it where the two agree; it overrules it only with a
         conclusive share of the map points in view; below that share, or with no feature pose at all, the direct
-        pose is kept, reported as unverified. A frame with too few features to say anything keeps it too (FDMO's
-        point: the direct estimate is then all there is). Where it is overruled, the judgement gets the reason."""
+        pose is kept, reported as unverified, unless the search around it finds almost none of the points the map
+        expects there. A frame with too few features to say anything keeps it too (FDMO's point: the direct
+        estimate is then all there is). Where it is not kept, the judgement gets the reason."""
         check = {**judgement.details(tracking), **outcome.details()}
         pose = outcome.pose
         if pose is not None and pose.num_inliers >= self.config.features.recovery.min_ransac_inliers:
@@ -221,11 +222,16 @@ class Odometry:
         if outcome.feature_deprived:
             _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
             return True
-        # No feature pose at all: nothing overrules the converged alignment. After a long forward jump the direct
-        # map still holds the far points the feature map lost (KITTI, 20 frames dropped: direct alone 0.159 m,
-        # the frames dropped as diverged until a new map 8.59 m).
+        if outcome.contradicts_estimate(self.config.features.recovery):
+            around = outcome.around_estimate
+            judgement.reason += (f"; the feature map finds {around.num_inliers} of the {around.in_view} points it "
+                                 "expects in view at the direct pose")
+            return False
+        # No feature pose, and nothing that contradicts the converged alignment: after a long forward jump the
+        # direct map still holds the far points the feature map lost (KITTI, 20 frames dropped: direct alone
+        # 0.159 m; dropped as diverged until a new map: 8.59 m).
         _emit(result, EventKind.TRACKING_UNVERIFIED, {
-            **check, "why": "the feature map does not recognize this view, so nothing can overrule the direct pose"})
+            **check, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
         return True
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
