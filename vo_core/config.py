@@ -48,6 +48,7 @@ class HybridConfig:
     # Ours: teddy with 15 frames dropped at 140 and parking with 10 at 100, the direct pose was right and
     # explained 76-79 % (the recovered poses were up to 9 cm off); restarting at the recovered pose cost 6-9x the ATE.
     same_optimum_px: float = 1.0
+    no_contradiction: float = 0.5
     # The feature map's pose overrules a suspect direct pose that converged only when it found this share of the
     # map points in view (the share a search around an estimate needs, features.recovery): below it, the feature
     # map is too weakly anchored in the view to say the direct pose is wrong, and the direct pose is kept,
@@ -55,7 +56,6 @@ class HybridConfig:
     # a look-alike place 30 frames back 5.6 %) and contradicted a right direct pose (1.42 m against direct's
     # 0.0153 m); the recoveries that rightly overruled one found 13 % (teddy 100:20).
     overrule_share: float = 0.10
-    no_contradiction: float = 0.5
     # Frames in a row without a pose (no direct tracking, no recovery) before the direct map initializes again
     # from scratch, at a new scale (ours; recovery keeps being tried meanwhile, and after).
     lost_frames_before_reinitialization: int = 10
