@@ -7,7 +7,7 @@ import numpy as np
 from test_direct_support import pose
 from vo_core.direct.config import KeyframeConfig
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
-from vo_core.direct.motion_model import motion_hypotheses
+from vo_core.direct.motion_model import extrapolate, motion_hypotheses
 from vo_core.geometry.lie import se3_inverse
 
 CONFIG = KeyframeConfig()
@@ -73,3 +73,15 @@ def test_after_a_jump_the_next_frame_moves_at_the_jump_s_velocity_not_by_the_who
     step = se3_inverse(T_world_prev1) @ T_world_frame
     # One ninth of the last motion (DSO would repeat all of it): nine such steps make the jump.
     np.testing.assert_allclose(np.linalg.matrix_power(step, 9), se3_inverse(T_world_prev2) @ T_world_prev1, atol=1e-9)
+
+
+def test_the_pose_predicted_after_a_gap_repeats_the_last_motion_over_the_time_that_passed():
+    T_world_prev2 = pose((0.0, 0.01, 0.0), (0.1, 0.0, 0.0))
+    T_world_prev1 = pose((0.0, 0.02, 0.0), (0.2, 0.0, 0.0))
+    posed = [(1.0, T_world_prev2), (1.1, T_world_prev1)]
+    step = T_world_prev1 @ se3_inverse(T_world_prev2)  # the last motion, in the world frame
+    # 11 intervals later (10 frames lost): the last motion 11 times over.
+    np.testing.assert_allclose(extrapolate(posed, 2.2), np.linalg.matrix_power(step, 11) @ T_world_prev1, atol=1e-9)
+    np.testing.assert_allclose(extrapolate(posed[-1:], 2.2), T_world_prev1)  # one pose: no velocity
+    np.testing.assert_allclose(extrapolate([(1.1, T_world_prev2), (1.1, T_world_prev1)], 2.2), T_world_prev1)
+    assert extrapolate([], 2.2) is None

@@ -13,7 +13,9 @@ each half offers steps and decides nothing:
         else the direct map restarts at the recovered pose (refined by that alignment where it converged and
             agrees with the feature map) with the feature points' depths (same scale)
         else the frame gets the feature pose and feature tracking takes the next frames
-        no pose at all: the frame is lost; after a while the direct map initializes anew (a new scale)
+        no pose at all: the frame is lost; after a while the direct map initializes anew (a new scale), while
+            the old window is still tracked against and recovered from: the first frame it takes back ends the
+            new initialization, so that the map goes on at its scale
     accept: immature points, keyframe decision, window      DirectOdometry.accept
     at a new direct keyframe: the feature map grows (Fig. 4)  FeatureOdometry.add_keyframe
 
@@ -31,11 +33,12 @@ import numpy as np
 
 from vo_core.config import Config
 from vo_core.direct.divergence import Judgement, Verdict, judge
+from vo_core.direct.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.errors import InputError
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log, transform_points
+from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.init.registry import initializer_factory
 
 IMPLEMENTED_METHODS = ("fdmo", "klt", "direct")
@@ -86,7 +89,7 @@ class Odometry:
                 self.features = FeatureOdometry(config.features, camera)
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
-        self.feature_poses: list[np.ndarray] = []  # the last poses of feature-based tracking (motion model)
+        self.posed: list[tuple[float, np.ndarray]] = []  # the current map's last two poses (timestamp, T_world_cam)
         self.previous_image: np.ndarray | None = None
         self.repeated_since = -1  # the frame whose image the following ones repeat
 
@@ -135,6 +138,8 @@ class Odometry:
         if self.features is not None and (keyframe is not None or result.is_keyframe):
             self._map_features(result)
         self._count_lost(frame, result)
+        if result.T_world_cam is not None:
+            self.posed = (self.posed + [(frame.timestamp, result.T_world_cam)])[-2:]
         result.timings_ms["total"] = _ms_since(start)
         return result
 
@@ -162,10 +167,16 @@ class Odometry:
         return self._recover(frame, tracking, judgement, result)
 
     def _initialize(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
-        """Feed the direct initializer; with a feature map from before, first try to find the frame in it, so
-        that the map goes on at its scale instead of a new one."""
-        if self.features is not None and not self.features.empty:
-            outcome = self.features.recover(frame.frame.image, None)
+        """Feed the direct initializer. After a reinitialization, first try to go on in the old map, so that it
+        keeps its scale instead of a new one: its window where it was kept, else its feature map (blind, and
+        around where the map's last motion would have taken the camera)."""
+        if self.features is not None and self.direct.has_window:
+            keyframe = self._track_old_window(frame, result)
+            if result.T_world_cam is not None:
+                return keyframe
+        elif self.features is not None and not self.features.empty:
+            outcome = self.features.recover(frame.frame.image, self.features.map.newest().frame_index,
+                                            self._predicted_pose(frame))
             result.timings_ms["recovery"] = outcome.ms
             if outcome.succeeded:
                 _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
@@ -174,14 +185,26 @@ class Odometry:
         if outcome is not None and self.features is not None:
             if not self.features.empty:
                 self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
+                self.posed = []
             self._map_features(result, initialization=outcome)
         return None
+
+    def _track_old_window(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+        """A frame while a new map initializes: the old window is tracked and recovered from as before the
+        reinitialization, so that frames that come back after a long failure (KITTI: 10 noise frames, 11 m on)
+        go on in the old map at its scale. Where direct tracking is back, the new initialization is dropped."""
+        keyframe = self._track_direct(frame, result)
+        if result.T_world_cam is not None and not self.direct.initialized and self.mode is _Mode.DIRECT:
+            self.direct.resume()
+            _emit(result, EventKind.DIRECT_RESUMED,
+                  {"keyframe": self.direct.newest_keyframe.frame_index, "instead_of": "reinitialization"})
+        return keyframe
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 3
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                  result: FrameResult) -> Keyframe | None:
-        estimate = tracking.T_world_cam if tracking.converged else None
+        estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
         result.timings_ms["recovery"] = outcome.ms
         if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
@@ -280,9 +303,8 @@ class Odometry:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the
         direct map restarts as soon as enough feature depths are in view."""
         anchor = self.features.map.newest().frame_index
-        outcome = self.features.track(frame.frame.image, _constant_velocity(self.feature_poses), anchor)
+        outcome = self.features.track(frame.frame.image, self._predicted_pose(frame), anchor)
         if not outcome.succeeded:
-            self.feature_poses = []
             outcome = self.features.recover(frame.frame.image, anchor)
             result.timings_ms["recovery"] = outcome.ms
             if not outcome.succeeded:
@@ -292,9 +314,13 @@ class Odometry:
             _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
         return self._continue_from(frame, outcome, None, result)
 
+    def _predicted_pose(self, frame: DirectFrame) -> np.ndarray | None:
+        """Where the map's last motion, kept up over the time that passed, puts the camera: the feature map is
+        searched around it where direct alignment gives no pose (ORB-SLAM2's TrackWithMotionModel)."""
+        return extrapolate(self.posed, frame.timestamp)
+
     def _pose_from_features(self, T_world_cam: np.ndarray, inliers: int, result: FrameResult) -> None:
         self.mode = _Mode.FEATURES
-        self.feature_poses = (self.feature_poses + [T_world_cam])[-2:]
         result.T_world_cam = T_world_cam
         result.tracked = True
         result.num_inliers = inliers
@@ -336,7 +362,8 @@ class Odometry:
 
     def _count_lost(self, frame: DirectFrame, result: FrameResult) -> None:
         """After ``lost_frames_before_reinitialization`` frames without a pose, the direct map starts over from
-        scratch (the last resort: a new scale); the recovery keeps being tried while it initializes."""
+        scratch (the last resort: a new scale); the old window is tracked against and recovered from until the new
+        map exists (``_track_old_window``)."""
         if result.T_world_cam is not None or not self.direct.initialized:
             self.lost_frames = 0 if result.T_world_cam is not None else self.lost_frames
             return
@@ -346,7 +373,7 @@ class Odometry:
         origin = self.direct.last_pose.copy()
         _emit(result, EventKind.REINITIALIZATION,
               {"origin_from_frame_pose": origin.tolist(), "from_scratch": True, "lost_frames": self.lost_frames})
-        self.direct.reinitialize(origin)
+        self.direct.reinitialize(origin, keep_window=True)
         self.lost_frames = 0
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
@@ -395,14 +422,6 @@ class Odometry:
         uv_to = outcome.features.features.uv[pose.feature_ids[front]]
         result.matches_2d = np.hstack([uv_from, uv_to])
         result.matches_inlier = pose.inlier[front]
-
-
-def _constant_velocity(poses: list[np.ndarray]) -> np.ndarray:
-    """The next pose if the last motion repeats (the motion model of feature-based tracking)."""
-    if len(poses) < 2:
-        return poses[-1]
-    step = se3_log(se3_inverse(poses[-2]) @ poses[-1])
-    return poses[-1] @ se3_exp(step)
 
 
 def _ms_since(start: float) -> float:

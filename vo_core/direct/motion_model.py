@@ -81,6 +81,20 @@ def motion_hypotheses(
     return hypotheses
 
 
+def extrapolate(posed: list[tuple[float, np.ndarray]], timestamp: float) -> np.ndarray | None:
+    """The pose at ``timestamp`` if the motion between the last two posed frames ((timestamp, T_world_cam), oldest
+    first) goes on at the same velocity (ORB-SLAM2's motion model, over the time that passed); the last pose where
+    one alone is known or the timestamps give no velocity, None where none is."""
+    if not posed:
+        return None
+    t1, T_world_prev1 = posed[-1]
+    if len(posed) < 2 or not posed[-2][0] < t1 < timestamp:
+        return T_world_prev1
+    t2, T_world_prev2 = posed[-2]
+    T_prev2_prev1 = se3_inverse(T_world_prev2) @ T_world_prev1  # the last motion, assumed to repeat
+    return T_world_prev1 @ _scaled(T_prev2_prev1, (timestamp - t1) / (t1 - t2))
+
+
 def _scaled(T: np.ndarray, factor: float) -> np.ndarray:
     """The motion ``T`` at ``factor`` times its velocity (along its geodesic)."""
     return se3_exp(factor * se3_log(T))

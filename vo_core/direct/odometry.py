@@ -5,7 +5,8 @@ the order of FDMO's flowchart (Fig. 2), so that the decisions about a frame are 
     odometry.initialize(frame, result)            # while not initialized: feed the initializer
     tracking = odometry.track(frame, prior)       # align against the newest keyframe; changes nothing
     keyframe = odometry.accept(frame, tracking, result)   # history, tracing, keyframe, window optimization
-    odometry.reinitialize(T_world_origin)         # forget the map; the next frames initialize again
+    odometry.reinitialize(T_world_origin)         # the next frames initialize again (the old window forgotten,
+                                                  # or kept and tracked against until the new map exists)
 
 ``track`` tries DSO's motion hypotheses (or only the given prior: FDMO's recovered pose) and returns the best
 alignment with the RMSE at the first guess and after the optimization (FDMO's divergence test). ``accept``
@@ -189,8 +190,7 @@ class DirectOdometry:
         self.keyframe_poses: dict[int, np.ndarray] = {}  # every keyframe ever, for viewers
         self.history: list[_Tracked] = []  # tracked frames since (re)initialization, newest last
         self.T_world_origin = np.eye(4)  # where the next initialization's first frame sits in the world
-        self.first_rmse = -1.0  # DSO's firstCoarseRMSE of the current reference
-        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
+        self._reset_rmse()
         self.initializer_frames = 0
         self._first_frame: DirectFrame | None = None  # the frame the initializer started from
         self.min_activation_distance = INITIAL_ACTIVATION_DISTANCE
@@ -322,11 +322,33 @@ class DirectOdometry:
             return None
         return keyframe
 
-    def reinitialize(self, T_world_origin: np.ndarray) -> None:
-        """Forget the map and initialize again from the next frame given to ``initialize``; the new map's first
-        frame sits at ``T_world_origin`` (the world frame is kept, the scale is the new initialization's)."""
+    def reinitialize(self, T_world_origin: np.ndarray, keep_window: bool = False) -> None:
+        """Initialize again from the next frame given to ``initialize``; the new map's first frame sits at
+        ``T_world_origin`` (the world frame is kept, the scale is the new initialization's). With
+        ``keep_window`` the old window stays until the new map exists: ``track`` still aligns against it and
+        ``resume`` takes it back (FDMO keeps trying its old map while the new one initializes); without, it is
+        forgotten at once (DSO)."""
         self.T_world_origin = np.array(T_world_origin, dtype=float)
-        self._forget_map(failed_initializer=None)
+        if not keep_window:
+            self._forget_map(failed_initializer=None)
+            return
+        self.state = _State.INITIALIZING
+        self.initializer = self.make_initializer(None)
+
+    def _reset_rmse(self) -> None:
+        """A new window's tracking reference has no RMSE to compare with yet."""
+        self.first_rmse = -1.0  # DSO's firstCoarseRMSE of the current reference
+        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
+
+    @property
+    def has_window(self) -> bool:
+        """Whether there is a window to track against (while initializing: the old one ``reinitialize`` kept)."""
+        return bool(self.keyframes)
+
+    def resume(self) -> None:
+        """Back to the kept window: the initialization that was to replace it is dropped."""
+        self.state = _State.TRACKING
+        self.initializer = self.make_initializer(None)
 
     def _forget_map(self, failed_initializer: str | None) -> None:
         self.state = _State.INITIALIZING
@@ -334,8 +356,7 @@ class DirectOdometry:
         self.prior = MarginalizationPrior()
         self.history = []
         self.initializer = self.make_initializer(failed_initializer)
-        self.first_rmse = -1.0
-        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        self._reset_rmse()
         self.start_check, self.start_failure = None, None
         self.scale_watch.reset()
 
@@ -353,8 +374,8 @@ class DirectOdometry:
         self.prior = MarginalizationPrior()
         self.history = [_Tracked(keyframe.T_world_cam, keyframe.affine, keyframe.timestamp)]
         self.state = _State.TRACKING
-        self.first_rmse = -1.0
-        self.last_rmse = np.full(1, INITIAL_LAST_RMSE)
+        self.initializer = self.make_initializer(None)  # one that had started to replace a kept window
+        self._reset_rmse()
         self.scale_watch.reset()  # a new window: nothing to compare its first keyframes with
         self.start_check, self.start_failure = None, None  # the feature map's points, not an initializer's start
         selection = self.selector.select(frame.pyramid, self.config.immature.density)
@@ -383,8 +404,9 @@ class DirectOdometry:
             self.T_world_origin.copy(), np.zeros(2), first_frame.exposure,
         )
         first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
-        self.keyframes = [first]
+        self.keyframes = [first]  # a window kept by reinitialize(keep_window=True) ends here
         self.prior = MarginalizationPrior()
+        self._reset_rmse()
         self.keyframe_poses[first.frame_index] = first.T_world_cam
         result.events.append(
             Event(

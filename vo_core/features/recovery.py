@@ -107,6 +107,9 @@ class RecoveryOutcome:
         if not self.succeeded:
             details["reason"] = self.reason
             details["feature_deprived"] = self.feature_deprived
+            if self.around_estimate is not None:
+                details["around_estimate"] = {"inliers": self.around_estimate.num_inliers,
+                                              "in_view": self.around_estimate.in_view}
         return details
 
 
