@@ -327,6 +327,8 @@ def _incidents(metrics: dict[str, Any]) -> list[str]:
         (events[EventKind.DIVERGENCE_DETECTED.value], "divergence", "divergences"),
         (recovered + unrecovered, f"recovery {outcome}", f"recoveries {outcome}"),
         (events[EventKind.REINITIALIZATION.value], "reinitialization", "reinitializations"),
+        (events[EventKind.REINITIALIZATION_ABANDONED.value], "reinitialization abandoned (the old map came back)",
+         "reinitializations abandoned (the old map came back)"),
     ]
     return [_counted(count, one, many) for count, one, many in counts if count]
 

@@ -9,7 +9,7 @@ the Sim(3)-aligned RMSE of every posed frame (one alignment for the whole run: a
 as a large ATE); "ratio" is that ATE over the clean run's. The motion across the drop is the ground truth's
 between the last frame before and the first after (translation m, rotation deg, FDMO 5.3.2's measures). The
 events column counts divergence_detected / recovery_succeeded / recovery_failed / direct_resumed / direct_restarted /
-reinitialization; "posed" is how many of the frames the odometry saw got a pose.
+reinitialization / reinitialization_abandoned; "posed" is how many of the frames the odometry saw got a pose.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
 REPORTED = ("divergence_detected", "recovery_succeeded", "recovery_failed", "direct_resumed", "direct_restarted",
-            "reinitialization")
+            "reinitialization", "reinitialization_abandoned")
 
 
 def run(sequence, method: str, at: int, count: int, overrides: list[str]) -> tuple[float, int, int, Counter]:

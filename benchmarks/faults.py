@@ -46,7 +46,8 @@ HEADER = ("sequence", "fault", "method", "frames", "posed", "no pose: why", "une
 EVENT_COLUMNS = (("tracking_failed", "fail"), ("divergence_detected", "div"), ("tracking_checked", "chk"),
                  ("tracking_unverified", "unverified"), ("recovery_succeeded", "rec"), ("recovery_failed", "rec-fail"),
                  ("direct_resumed", "resume"), ("direct_restarted", "restart"),
-                 ("feature_tracking", "feat"), ("reinitialization", "reinit"), ("frame_repeated", "rep"),
+                 ("feature_tracking", "feat"), ("reinitialization", "reinit"),
+                 ("reinitialization_abandoned", "reinit-abandoned"), ("frame_repeated", "rep"),
                  ("frame_skipped", "skip"), ("frames_dropped", "drop"))
 
 

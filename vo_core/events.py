@@ -33,7 +33,8 @@ class EventKind(str, Enum):
     DIRECT_RESUMED = "direct_resumed"  # direct tracking goes on in the same window from a recovered pose
     DIRECT_RESTARTED = "direct_restarted"  # the direct map starts over at a recovered pose, same scale
     FEATURE_TRACKING = "feature_tracking"  # a frame posed by the feature map while direct tracking is not back
-    REINITIALIZATION = "reinitialization"  # the last resort: a new map at a new scale
+    REINITIALIZATION = "reinitialization"  # the last resort: a new map at a new scale (it begins to initialize)
+    REINITIALIZATION_ABANDONED = "reinitialization_abandoned"  # the old map came back first: it goes on, same scale
     KEYFRAME_ADDED = "keyframe_added"
     FEATURE_KEYFRAME_ADDED = "feature_keyframe_added"  # FDMO 4.3: the feature map grew at a direct keyframe
     FEATURE_KEYFRAME_CULLED = "feature_keyframe_culled"  # FDMO 4.4: redundant, its direct twin marginalized

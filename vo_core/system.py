@@ -196,8 +196,7 @@ class Odometry:
         keyframe = self._track_direct(frame, result)
         if result.T_world_cam is not None and not self.direct.initialized and self.mode is _Mode.DIRECT:
             self.direct.resume()
-            _emit(result, EventKind.DIRECT_RESUMED,
-                  {"keyframe": self.direct.newest_keyframe.frame_index, "instead_of": "reinitialization"})
+            _emit(result, EventKind.REINITIALIZATION_ABANDONED, {"keyframe": self.direct.newest_keyframe.frame_index})
         return keyframe
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 3

@@ -40,6 +40,7 @@ EVENT_COLUMNS = {
     "recoveries": EventKind.RECOVERY_SUCCEEDED,
     "failed_recoveries": EventKind.RECOVERY_FAILED,
     "reinitializations": EventKind.REINITIALIZATION,
+    "reinitializations_abandoned": EventKind.REINITIALIZATION_ABANDONED,
 }
 
 

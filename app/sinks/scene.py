@@ -74,6 +74,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.DIRECT_RESTARTED: EventStyle("WARN", (0, 150, 255)),
     EventKind.FEATURE_TRACKING: EventStyle("INFO", FEATURE_POINT_COLOR),
     EventKind.REINITIALIZATION: EventStyle("WARN", (220, 60, 220)),
+    EventKind.REINITIALIZATION_ABANDONED: EventStyle("INFO", (120, 220, 120)),
     EventKind.KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_CULLED: _ROUTINE,
