@@ -107,7 +107,7 @@ def run(sequence, initializer: str, overrides: list[str]) -> RunResult:
     config = load_config(None, [*overrides, "method=direct", f"direct.initializer={initializer}"])
     odometry = Odometry(config, sequence.camera)
     outcome = RunResult()
-    timestamps, estimated, truth, first_start = {}, [], [], ([], [])
+    timestamps, posed, first_start = {}, {}, ([], [])  # posed: timestamp -> (estimated, true) position
     for count, frame in enumerate(sequence, start=1):
         result = odometry.track(frame)
         timestamps[frame.index] = frame.timestamp
@@ -116,23 +116,26 @@ def run(sequence, initializer: str, overrides: list[str]) -> RunResult:
                 outcome.frames, outcome.method = count, str(event.details["method"])
                 outcome.model = str(event.details.get("model", "-"))
                 _first_pose_errors(outcome, sequence, event, timestamps, frame.timestamp, result.T_world_cam)
-            elif event.kind is EventKind.INITIALIZATION_REJECTED and outcome.rejected is None:
-                outcome.rejected, outcome.check = str(event.details["reason"]), event.details
+            elif event.kind is EventKind.INITIALIZATION_REJECTED:
+                for retracted in event.details["retracted"]:  # as trajectory.tum drops them
+                    posed.pop(retracted, None)
+                if outcome.rejected is None:
+                    outcome.rejected, outcome.check = str(event.details["reason"]), event.details
             outcome.scale_jumps += event.kind is EventKind.SCALE_JUMP
         check = odometry.direct.start_check
         if outcome.check is None and check is not None and check.passed:
             outcome.check = check.details()
         T_true = ground_truth_pose(sequence, frame.timestamp) if result.T_world_cam is not None else None
         if T_true is not None:
-            estimated.append(result.T_world_cam[:3, 3])
-            truth.append(T_true[:3, 3])
+            posed[frame.timestamp] = (result.T_world_cam[:3, 3], T_true[:3, 3])
             if outcome.rejected is None:  # the first start's frames
                 first_start[0].append(result.T_world_cam[:3, 3])
                 first_start[1].append(T_true[:3, 3])
     outcome.scale_change = scale_change(*first_start)
-    outcome.tracked = len(estimated)
-    if len(estimated) > 2 and np.ptp(np.array(estimated), axis=0).max() > 0:
-        source, target = np.array(estimated), np.array(truth)
+    outcome.tracked = len(posed)
+    estimated = np.array([position for position, _ in posed.values()]).reshape(-1, 3)
+    if len(estimated) > 2 and np.ptp(estimated, axis=0).max() > 0:
+        source, target = estimated, np.array([position for _, position in posed.values()])
         R, t, s = umeyama(source, target, with_scale=True)
         outcome.ate = float(np.sqrt(np.mean(np.sum((source @ R.T * s + t - target) ** 2, axis=1))))
     return outcome

@@ -147,3 +147,16 @@ def test_frames_played_again_keep_one_line_per_timestamp_their_latest_outcome(si
     assert len(read_trajectory(sink.out_dir / TRAJECTORY_FILE)) == 6
     frames = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
     assert frames["frame"].tolist() == [*range(8), 3, 4, 5, 8]  # a line per processing, in processing order
+
+
+def test_poses_retracted_by_a_rejected_start_leave_the_trajectory(sink):
+    """A start found wrong after the hand-over takes back the poses its map gave (INITIALIZATION_REJECTED's
+    ``retracted``): trajectory.tum must not mix that map with the next one."""
+    feed(sink)
+    retracted = [result(i).timestamp for i in (3, 4)]
+    sink.on_event(Event(EventKind.INITIALIZATION_REJECTED, 5, result(5).timestamp,
+                        {"reason": "test", "retracted": retracted}))
+    kept = read_trajectory(sink.out_dir / TRAJECTORY_FILE)
+    assert len(kept) == 4
+    assert not np.isin(np.array(retracted), kept.timestamps).any()
+    assert sink.estimate().timestamps.tolist() == kept.timestamps.tolist()

@@ -22,7 +22,7 @@ import numpy as np
 
 from app.sinks.scene import FEATURE_POINT_COLOR, inverse_depth_colors
 from vo_core.config import Config, dump_config
-from vo_core.events import Event, FrameResult, MapSnapshot
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.trajectory import Trajectory, tum_line, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
@@ -80,6 +80,8 @@ class FilesSink:
 
     def on_event(self, event: Event) -> None:
         self._files[EVENTS_FILE].write(to_json(event.to_json_dict()) + "\n")
+        if event.kind is EventKind.INITIALIZATION_REJECTED:
+            self._trajectory.remove(event.details.get("retracted", []))  # posed in a map found wrong
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass  # the keyframes' final poses are written by write_keyframes at the end
@@ -157,6 +159,12 @@ class PoseLines:
         elif self._lines.pop(timestamp, None) is None:
             return
         self._rewrite()
+
+    def remove(self, timestamps) -> None:
+        """The lines at ``timestamps`` go (poses retracted by the odometry); the file is rewritten if any went."""
+        removed = [self._lines.pop(float(timestamp), None) for timestamp in timestamps]
+        if any(line is not None for line in removed):
+            self._rewrite()
 
     def replace(self, poses: dict[float, np.ndarray]) -> None:
         """The whole file anew: ``poses`` by timestamp."""

@@ -162,6 +162,33 @@ class WindowConfig:
 
 
 @dataclass
+class EpipolarCheckConfig:
+    """The start check's independent witness (epipolar_check.py): the essential matrix of ORB matches between the
+    start's keyframes against the direct poses' motion. Measured in BENCHMARKS.md (Starts from many frames): right
+    starts' qualified pairs disagree by at most 1.1 deg and 5.4 deg (KITTI, parking; one flipped pair on teddy), the
+    wrong ones by 4.3-9.4 deg and 22-142 deg on every qualified pair."""
+
+    enabled: bool = True
+    # ORB-SLAM2's initialization matching: twice the tracking's features (Tracking::MonocularInitialization's
+    # mpIniORBextractor), a Hamming distance of at most TH_LOW and a nearest-to-second ratio of 0.9
+    # (ORBmatcher::SearchForInitialization).
+    num_features: int = 3000
+    max_distance: int = 50
+    ratio: float = 0.9
+    ransac_threshold_px: float = 1.0  # ORB-SLAM's sigma of one pixel
+    ransac_confidence: float = 0.999
+    # A pair qualifies with this many matches triangulated in front of both views (ORB-SLAM2's
+    # CreateInitialMapMonocular resets a start with fewer than 100 tracked points) ...
+    min_points: int = 100
+    min_parallax_deg: float = 1.0  # ... seen under this median parallax (ORB-SLAM Initialize(): 1 degree)
+    # A qualified pair disagrees beyond these (the wrong start of the initializer benchmark: 3 deg, 30 deg).
+    max_rotation_deg: float = 3.0
+    max_direction_deg: float = 30.0
+    # The start is refused where at least this many pairs disagree, and more than half of the qualified ones.
+    min_disagreeing_pairs: int = 2
+
+
+@dataclass
 class StartCheckConfig:
     """The check of a new start over the first window optimizations after the hand-over (start_check.py). DSO has
     none; ORB-SLAM2 has one (CreateInitialMapMonocular resets a start whose first global bundle adjustment leaves a
@@ -179,6 +206,7 @@ class StartCheckConfig:
     # plane: 2.6x; right starts on the shared folders and the synthetic presets: up to 1.4x).
     max_energy_growth: float = 2.0
     min_inlier_ratio: float = 0.5  # at the last optimization: residuals in view that are not outliers
+    epipolar: EpipolarCheckConfig = field(default_factory=EpipolarCheckConfig)  # at the last optimization
 
 
 @dataclass

@@ -297,6 +297,8 @@ class DirectOdometry:
         T_world_cam = tracking.T_world_cam
         result.T_world_cam = T_world_cam
         result.tracked = True
+        if self.start_check is not None and not self.start_check.passed:
+            self.start_check.posed(frame.timestamp)
         result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
         result.num_inliers = best.num_terms
         result.points_2d = self._visible(self.tracker.project_points(best.T_frame_ref))
@@ -425,6 +427,7 @@ class DirectOdometry:
         method = self.initializer.name
         if self.config.start_check.enabled:
             self.start_check = StartCheck(self.config.start_check, first.frame_index, frame.index, method)
+            self.start_check.posed(frame.timestamp)
         self.initializer = self.make_initializer(None)
         self.scale_watch.reset()
         result.T_world_cam = T_world_cam
@@ -557,11 +560,13 @@ class DirectOdometry:
         self.start_failure = self.start_check.observe(report, self.keyframes)
 
     def _discard_start(self, frame: DirectFrame, result: FrameResult) -> None:
-        """A start failed its check: the map goes, the frame gets no pose (it was posed in that map), and the
-        initializer starts again from this frame."""
+        """A start failed its check: the map goes, the frame gets no pose (it was posed in that map), the poses the
+        frames before it got in that map are retracted (``retracted``: their timestamps, for the sinks that keep a
+        trajectory), and the initializer starts again from this frame."""
         check = self.start_check
         result.events.append(_event(EventKind.INITIALIZATION_REJECTED, frame,
-                                    {"reason": self.start_failure, **check.details()}))
+                                    {"reason": self.start_failure, **check.details(),
+                                     "retracted": [t for t in check.posed_timestamps if t != frame.timestamp]}))
         result.T_world_cam, result.tracked, result.is_keyframe, result.points_2d = None, False, False, None
         self._forget_map(failed_initializer=check.initializer)
         self.initialize(frame, result)

@@ -14,6 +14,8 @@ hand-over's own, and is discarded at the first of them where:
   in view are inliers. Only at the last: right after a right start the first windows often hold many outliers
   (points whose initial depths were off: half the residuals on a synthetic room with the coarse initializer),
   which the window optimizations then remove.
+* at the last of them too: the ORB matches between the window's keyframes contradict the direct poses' motion
+  (epipolar_check.py), the one measure that does not come from the direct map itself.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_core.direct.config import StartCheckConfig
+from vo_core.direct.epipolar_check import EpipolarCheck
 from vo_core.direct.window import WindowReport
 
 
@@ -36,6 +39,7 @@ class StartCheck:
     optimizations: int = 0  # window optimizations seen after the hand-over's own
     energies: list[float] = field(default_factory=list)  # their energies per residual in view
     measures: dict = field(default_factory=dict)  # for the event: the latest energy and inliers, the worst change
+    posed_timestamps: list[float] = field(default_factory=list)  # the frames posed in this start's map so far
 
     @property
     def passed(self) -> bool:
@@ -64,13 +68,21 @@ class StartCheck:
             return f"the energy per residual grew {growth:.1f}x during the first window optimizations"
         if inliers < config.min_inlier_ratio:
             return f"inlier ratio {inliers:.2f} below {config.min_inlier_ratio}"
+        if config.epipolar.enabled:
+            reason, measures = EpipolarCheck(config.epipolar).disagreement(keyframes, keyframes[0].camera)
+            self.measures.update(measures)
+            return reason
         return None
+
+    def posed(self, timestamp: float) -> None:
+        """A frame got a pose in this start's map while it is on probation (retracted if the start fails)."""
+        self.posed_timestamps.append(float(timestamp))
 
     def details(self) -> dict:
         return {
             "initializer": self.initializer, "first_frame": self.first_frame_index,
             "second_frame": self.second_frame_index, "window_optimizations": self.optimizations,
-            **{key: round(value, 4) for key, value in self.measures.items()},
+            **{key: round(value, 4) if isinstance(value, float) else value for key, value in self.measures.items()},
         }
 
     def _parallax(self, keyframes: list) -> float | None:

@@ -1,0 +1,121 @@
+"""The start check's independent witness: what ORB matches between the start's keyframes say about their motion.
+
+The start check's other measures (start_check.py) all come from the direct map itself, so a start that is wrong
+in a self-consistent way passes them: DSO's coarse initializer on KITTI played backward from frame 0 hands over a
+first pose 8 deg and 45 deg off that its window optimizations then refine without complaint (inlier ratio 0.70,
+no energy growth, parallax unchanged). Two images say it directly: the essential matrix of their ORB matches
+(five-point RANSAC, cv2.findEssentialMat) gives the relative rotation and translation direction without any of the
+map's depths. For each keyframe of the start's window against its oldest one, where the matches support the
+epipolar geometry well (enough points triangulated in front of both views, seen under enough parallax), the
+direct poses' motion is compared with it.
+
+One pair can be fooled (a near-planar view lets the five-point solution flip its translation: teddy, one pair of a
+right start in 3 with 273 points), so the start is refused only where several pairs, and most of the qualified
+ones, disagree. Where too few pairs qualify (too little parallax, too few matches) the check says nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from vo_core.direct.config import EpipolarCheckConfig
+from vo_core.features.config import OrbConfig
+from vo_core.features.orb import Features, OrbExtractor
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_inverse, so3_geodesic_angle
+from vo_core.geometry.multiview import bearing_angles
+
+
+@dataclass
+class PairGeometry:
+    """One keyframe pair: the epipolar geometry of its matches against the direct poses' relative motion."""
+
+    frames: tuple[int, int]
+    points: int  # matches triangulated in front of both views by the essential matrix's motion
+    parallax_deg: float  # median angle between the two rays of those points, rotation removed
+    rotation_deg: float  # between the essential matrix's rotation and the direct poses'
+    direction_deg: float  # between their translation directions
+
+    def qualified(self, config: EpipolarCheckConfig) -> bool:
+        return self.points >= config.min_points and self.parallax_deg >= config.min_parallax_deg
+
+    def disagrees(self, config: EpipolarCheckConfig) -> bool:
+        return self.rotation_deg > config.max_rotation_deg or self.direction_deg > config.max_direction_deg
+
+    def details(self) -> dict:
+        return {"frames": list(self.frames), "points": self.points, "parallax_deg": round(self.parallax_deg, 2),
+                "rotation_deg": round(self.rotation_deg, 2), "direction_deg": round(self.direction_deg, 1)}
+
+
+class EpipolarCheck:
+    def __init__(self, config: EpipolarCheckConfig):
+        self.config = config
+        self.extractor = OrbExtractor(OrbConfig(num_features=config.num_features))
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+
+    def disagreement(self, keyframes: list, camera: PinholeCamera) -> tuple[str | None, dict]:
+        """Why the direct poses of ``keyframes`` (each with ``frame_index``, ``image``, ``T_world_cam``) contradict
+        the epipolar geometry of their images, or None; and the measures for the event."""
+        config = self.config
+        anchor, others = keyframes[0], keyframes[1:]
+        anchor_features = self.extractor.extract(anchor.image)
+        pairs = [self._pair(anchor, anchor_features, other, camera) for other in others]
+        qualified = [pair for pair in pairs if pair is not None and pair.qualified(config)]
+        disagreeing = [pair for pair in qualified if pair.disagrees(config)]
+        details = {"epipolar_pairs": len(qualified), "epipolar_disagreeing": len(disagreeing)}
+        if disagreeing:
+            worst = max(disagreeing, key=lambda pair: pair.rotation_deg / config.max_rotation_deg
+                        + pair.direction_deg / config.max_direction_deg)
+            details["epipolar_worst"] = worst.details()
+        if len(disagreeing) < config.min_disagreeing_pairs or 2 * len(disagreeing) <= len(qualified):
+            return None, details
+        worst = details["epipolar_worst"]
+        return (f"the ORB matches of {len(disagreeing)} of {len(qualified)} keyframe pairs contradict the start's "
+                f"motion (worst, frames {worst['frames'][0]}-{worst['frames'][1]}: rotation "
+                f"{worst['rotation_deg']:.1f} deg, translation direction {worst['direction_deg']:.0f} deg apart)"), details
+
+    def _pair(self, anchor, anchor_features: Features, other, camera: PinholeCamera) -> PairGeometry | None:
+        config = self.config
+        uv_anchor, uv_other = self._matches(anchor_features, self.extractor.extract(other.image))
+        if len(uv_anchor) < config.min_points:
+            return None
+        E, inliers = cv2.findEssentialMat(uv_anchor, uv_other, camera.K, cv2.RANSAC, config.ransac_confidence,
+                                          config.ransac_threshold_px)
+        if E is None or E.shape != (3, 3):
+            return None
+        points, R_other_anchor, t_other_anchor, in_front = cv2.recoverPose(E, uv_anchor, uv_other, camera.K,
+                                                                           mask=inliers.copy())
+        in_front = in_front.ravel() > 0
+        T_anchor_other = np.eye(4)
+        T_anchor_other[:3, :3] = R_other_anchor.T
+        T_anchor_other[:3, 3] = -R_other_anchor.T @ t_other_anchor.ravel()
+        rays = bearing_angles(camera, np.eye(4), uv_anchor[in_front], T_anchor_other, uv_other[in_front])
+        parallax = float(np.degrees(np.median(rays))) if len(rays) else 0.0
+        T_direct = se3_inverse(anchor.T_world_cam) @ other.T_world_cam
+        return PairGeometry(
+            (anchor.frame_index, other.frame_index), int(points), parallax,
+            float(np.degrees(so3_geodesic_angle(T_anchor_other[:3, :3], T_direct[:3, :3]))),
+            _angle_deg(T_anchor_other[:3, 3], T_direct[:3, 3]),
+        )
+
+    def _matches(self, first: Features, second: Features) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest descriptor in the other image, kept when clearly nearer than the second (Lowe's ratio)."""
+        if len(first) < 2 or len(second) < 2:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        pairs = self.matcher.knnMatch(first.descriptors, second.descriptors, k=2)
+        kept = [(best.queryIdx, best.trainIdx) for best, second_best in (p for p in pairs if len(p) == 2)
+                if best.distance <= self.config.max_distance and best.distance < self.config.ratio * second_best.distance]
+        if not kept:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        index = np.array(kept)
+        return first.uv[index[:, 0]], second.uv[index[:, 1]]
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    norms = np.linalg.norm(a) * np.linalg.norm(b)
+    if norms == 0:
+        return 180.0
+    return float(np.degrees(np.arccos(np.clip(a @ b / norms, -1.0, 1.0))))
