@@ -186,6 +186,7 @@ class EpipolarCheckConfig:
     max_direction_deg: float = 30.0
     # The start is refused where at least this many pairs disagree, and more than half of the qualified ones.
     min_disagreeing_pairs: int = 2
+    seed: int = 0  # of the RANSAC that tells a plane (two_view.estimate_models): the same input, the same verdict
 
 
 @dataclass

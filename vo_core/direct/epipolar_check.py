@@ -9,9 +9,12 @@ map's depths. For each keyframe of the start's window against its oldest one, wh
 epipolar geometry well (enough points triangulated in front of both views, seen under enough parallax), the
 direct poses' motion is compared with it.
 
-One pair can be fooled (a near-planar view lets the five-point solution flip its translation: teddy, one pair of a
-right start in 3 with 273 points), so the start is refused only where several pairs, and most of the qualified
-ones, disagree. Where too few pairs qualify (too little parallax, too few matches) the check says nothing.
+A plane seen from two views has two motions that explain it equally (Faugeras' twofold ambiguity), and the
+essential matrix then picks one at random: a pair whose inliers a homography explains as well (ORB-SLAM's model
+selection, R_H > 0.4, geometry/two_view.py) does not count. One pair can still be fooled (a near-planar view
+flipped the translation of one pair of a right teddy start in 3, with 273 points), so the start is refused only
+where several pairs, and most of the qualified ones, disagree. Where too few pairs qualify (too little parallax,
+too few matches, a planar view) the check says nothing.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from vo_core.features.orb import Features, OrbExtractor
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, so3_geodesic_angle
 from vo_core.geometry.multiview import bearing_angles
+from vo_core.geometry.two_view import TwoViewConfig, estimate_models
 
 
 @dataclass
@@ -38,16 +42,19 @@ class PairGeometry:
     parallax_deg: float  # median angle between the two rays of those points, rotation removed
     rotation_deg: float  # between the essential matrix's rotation and the direct poses'
     direction_deg: float  # between their translation directions
+    homography_ratio: float  # R_H of the essential matrix's inliers: above TwoViewConfig's, a plane
 
     def qualified(self, config: EpipolarCheckConfig) -> bool:
-        return self.points >= config.min_points and self.parallax_deg >= config.min_parallax_deg
+        return (self.points >= config.min_points and self.parallax_deg >= config.min_parallax_deg
+                and self.homography_ratio <= TwoViewConfig.homography_ratio)
 
     def disagrees(self, config: EpipolarCheckConfig) -> bool:
         return self.rotation_deg > config.max_rotation_deg or self.direction_deg > config.max_direction_deg
 
     def details(self) -> dict:
         return {"frames": list(self.frames), "points": self.points, "parallax_deg": round(self.parallax_deg, 2),
-                "rotation_deg": round(self.rotation_deg, 2), "direction_deg": round(self.direction_deg, 1)}
+                "rotation_deg": round(self.rotation_deg, 2), "direction_deg": round(self.direction_deg, 1),
+                "homography_ratio": round(self.homography_ratio, 2)}
 
 
 class EpipolarCheck:
@@ -89,6 +96,8 @@ class EpipolarCheck:
         points, R_other_anchor, t_other_anchor, in_front = cv2.recoverPose(E, uv_anchor, uv_other, camera.K,
                                                                            mask=inliers.copy())
         in_front = in_front.ravel() > 0
+        if in_front.sum() < config.min_points:
+            return None
         T_anchor_other = np.eye(4)
         T_anchor_other[:3, :3] = R_other_anchor.T
         T_anchor_other[:3, 3] = -R_other_anchor.T @ t_other_anchor.ravel()
@@ -99,6 +108,8 @@ class EpipolarCheck:
             (anchor.frame_index, other.frame_index), int(points), parallax,
             float(np.degrees(so3_geodesic_angle(T_anchor_other[:3, :3], T_direct[:3, :3]))),
             _angle_deg(T_anchor_other[:3, 3], T_direct[:3, 3]),
+            estimate_models(uv_anchor[in_front], uv_other[in_front], TwoViewConfig(),
+                            np.random.default_rng(config.seed)).ratio,
         )
 
     def _matches(self, first: Features, second: Features) -> tuple[np.ndarray, np.ndarray]:
