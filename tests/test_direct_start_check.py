@@ -117,7 +117,8 @@ def test_the_wrong_twin_of_a_planar_start_is_discarded_with_the_reason(twin_run)
     assert len(events_of(twin_run, EventKind.INITIALIZATION_SUCCEEDED)) == 2
     assert len(rejected) == 1
     # Every pose the discarded map gave is retracted, and only those.
-    posed_in_it = [r.timestamp for r in twin_run if started <= r.frame_index < event.frame_index and r.T_world_cam is not None]
+    posed_in_it = [r.timestamp for r in twin_run
+                   if started <= r.frame_index < event.frame_index and r.T_world_cam is not None]
     assert posed_in_it and event.details["retracted"] == posed_in_it
 
 

@@ -21,7 +21,8 @@ class EventKind(str, Enum):
     INITIALIZATION_SUCCEEDED = "initialization_succeeded"
     INITIALIZATION_FAILED = "initialization_failed"
     INITIALIZER_MODEL = "initializer_model"  # H or F chosen, with scores
-    INITIALIZATION_REJECTED = "initialization_rejected"  # a start failed its check after the hand-over: discarded, its poses retracted
+    # a start failed its check after the hand-over: discarded, its poses retracted
+    INITIALIZATION_REJECTED = "initialization_rejected"
     TRACKING_OK = "tracking_ok"
     TRACKING_FAILED = "tracking_failed"
     DIVERGENCE_DETECTED = "divergence_detected"  # FDMO 4.2.1: RMSE_after / RMSE_before > 1 + eps, or confirmed

@@ -80,9 +80,10 @@ class EpipolarCheck:
         if len(disagreeing) < config.min_disagreeing_pairs or 2 * len(disagreeing) <= len(qualified):
             return None, details
         worst = details["epipolar_worst"]
-        return (f"the ORB matches of {len(disagreeing)} of {len(qualified)} keyframe pairs contradict the start's "
-                f"motion (worst, frames {worst['frames'][0]}-{worst['frames'][1]}: rotation "
-                f"{worst['rotation_deg']:.1f} deg, translation direction {worst['direction_deg']:.0f} deg apart)"), details
+        reason = (f"the ORB matches of {len(disagreeing)} of {len(qualified)} keyframe pairs contradict the start's "
+                  f"motion (worst, frames {worst['frames'][0]}-{worst['frames'][1]}: rotation "
+                  f"{worst['rotation_deg']:.1f} deg, translation direction {worst['direction_deg']:.0f} deg apart)")
+        return reason, details
 
     def _pair(self, anchor, anchor_features: Features, other, camera: PinholeCamera) -> PairGeometry | None:
         config = self.config
@@ -117,8 +118,9 @@ class EpipolarCheck:
         if len(first) < 2 or len(second) < 2:
             return np.zeros((0, 2)), np.zeros((0, 2))
         pairs = self.matcher.knnMatch(first.descriptors, second.descriptors, k=2)
+        config = self.config
         kept = [(best.queryIdx, best.trainIdx) for best, second_best in (p for p in pairs if len(p) == 2)
-                if best.distance <= self.config.max_distance and best.distance < self.config.ratio * second_best.distance]
+                if best.distance <= config.max_distance and best.distance < config.ratio * second_best.distance]
         if not kept:
             return np.zeros((0, 2)), np.zeros((0, 2))
         index = np.array(kept)
