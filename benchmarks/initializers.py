@@ -38,7 +38,7 @@ from vo_core.config import load_config  # noqa: E402
 from vo_core.datasets import open_sequence  # noqa: E402
 from vo_core.eval.align import umeyama  # noqa: E402
 from vo_core.events import EventKind  # noqa: E402
-from vo_core.geometry.lie import se3_inverse, so3_log  # noqa: E402
+from vo_core.geometry.lie import motion_angles_deg, se3_inverse  # noqa: E402
 from vo_core.synthetic import make_sequence  # noqa: E402
 from vo_core.system import Odometry  # noqa: E402
 
@@ -80,13 +80,6 @@ def ground_truth_pose(sequence, timestamp: float) -> np.ndarray | None:
     truth = sequence.ground_truth
     k = int(np.argmin(np.abs(truth.timestamps - timestamp)))
     return truth.poses[k] if abs(truth.timestamps[k] - timestamp) <= MAX_DT_S else None
-
-
-def relative_errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
-    rotation = float(np.degrees(np.linalg.norm(so3_log(T_true[:3, :3].T @ T_est[:3, :3]))))
-    a, b = T_est[:3, 3], T_true[:3, 3]
-    cosine = a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12)
-    return rotation, float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
 
 
 def scale_change(estimated: list, truth: list) -> float:
@@ -148,8 +141,8 @@ def _first_pose_errors(outcome: RunResult, sequence, event, timestamps: dict, ti
         return
     T_true = se3_inverse(first_true) @ here_true
     T_est = se3_inverse(np.asarray(event.details["first_T_world_cam"])) @ T_world_cam
-    outcome.rotation_deg, outcome.direction_deg = relative_errors(T_est, T_true)
-    outcome.init_rotation_deg, outcome.init_direction_deg = relative_errors(
+    outcome.rotation_deg, outcome.direction_deg = motion_angles_deg(T_est, T_true)
+    outcome.init_rotation_deg, outcome.init_direction_deg = motion_angles_deg(
         np.asarray(event.details["T_first_second"]), T_true
     )
 

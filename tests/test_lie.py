@@ -7,6 +7,8 @@ import pytest
 
 from vo_core.geometry.lie import (
     hat,
+    motion_angles_deg,
+    se3,
     se3_adjoint,
     se3_exp,
     se3_inverse,
@@ -163,6 +165,16 @@ def test_geodesic_angle():
     R_a = so3_exp(np.array([0.1, 0.2, -0.3]))
     R_b = R_a @ so3_exp(np.array([0.0, 0.5, 0.0]))
     assert so3_geodesic_angle(R_a, R_b) == pytest.approx(0.5, abs=1e-12)
+
+
+def test_motion_angles_ignore_the_scale_and_measure_the_direction():
+    R_a = so3_exp(np.array([0.1, 0.2, -0.3]))
+    T_a = se3(R_a, np.array([1.0, 0.0, 0.0]))
+    T_b = se3(R_a @ so3_exp(np.array([0.0, 0.5, 0.0])), np.array([0.0, 7.0, 0.0]))  # other length, at right angles
+    rotation, direction = motion_angles_deg(T_a, T_b)
+    assert rotation == pytest.approx(np.degrees(0.5), abs=1e-9)
+    assert direction == pytest.approx(90.0, abs=1e-9)
+    assert motion_angles_deg(T_a, se3(R_a, np.array([3.0, 0.0, 0.0]))) == pytest.approx((0.0, 0.0), abs=1e-6)
 
 
 # ----------------------------------------------------------------------------------------------- adjoints

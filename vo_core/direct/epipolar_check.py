@@ -28,7 +28,7 @@ from vo_core.direct.config import EpipolarCheckConfig
 from vo_core.features.config import OrbConfig
 from vo_core.features.orb import Features, OrbExtractor
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, so3_geodesic_angle
+from vo_core.geometry.lie import motion_angles_deg, se3_inverse
 from vo_core.geometry.multiview import bearing_angles
 from vo_core.geometry.two_view import TwoViewConfig, estimate_models
 
@@ -73,16 +73,16 @@ class EpipolarCheck:
         qualified = [pair for pair in pairs if pair is not None and pair.qualified(config)]
         disagreeing = [pair for pair in qualified if pair.disagrees(config)]
         details = {"epipolar_pairs": len(qualified), "epipolar_disagreeing": len(disagreeing)}
-        if disagreeing:
-            worst = max(disagreeing, key=lambda pair: pair.rotation_deg / config.max_rotation_deg
-                        + pair.direction_deg / config.max_direction_deg)
-            details["epipolar_worst"] = worst.details()
+        if not disagreeing:
+            return None, details
+        worst = max(disagreeing, key=lambda pair: pair.rotation_deg / config.max_rotation_deg
+                    + pair.direction_deg / config.max_direction_deg)
+        details["epipolar_worst"] = worst.details()
         if len(disagreeing) < config.min_disagreeing_pairs or 2 * len(disagreeing) <= len(qualified):
             return None, details
-        worst = details["epipolar_worst"]
         reason = (f"the ORB matches of {len(disagreeing)} of {len(qualified)} keyframe pairs contradict the start's "
-                  f"motion (worst, frames {worst['frames'][0]}-{worst['frames'][1]}: rotation "
-                  f"{worst['rotation_deg']:.1f} deg, translation direction {worst['direction_deg']:.0f} deg apart)")
+                  f"motion (worst, frames {worst.frames[0]}-{worst.frames[1]}: rotation {worst.rotation_deg:.1f} deg, "
+                  f"translation direction {worst.direction_deg:.0f} deg apart)")
         return reason, details
 
     def _pair(self, anchor, anchor_features: Features, other, camera: PinholeCamera) -> PairGeometry | None:
@@ -107,8 +107,7 @@ class EpipolarCheck:
         T_direct = se3_inverse(anchor.T_world_cam) @ other.T_world_cam
         return PairGeometry(
             (anchor.frame_index, other.frame_index), int(points), parallax,
-            float(np.degrees(so3_geodesic_angle(T_anchor_other[:3, :3], T_direct[:3, :3]))),
-            _angle_deg(T_anchor_other[:3, 3], T_direct[:3, 3]),
+            *motion_angles_deg(T_anchor_other, T_direct),
             estimate_models(uv_anchor[in_front], uv_other[in_front], TwoViewConfig(),
                             np.random.default_rng(config.seed)).ratio,
         )
@@ -126,9 +125,3 @@ class EpipolarCheck:
         index = np.array(kept)
         return first.uv[index[:, 0]], second.uv[index[:, 1]]
 
-
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    norms = np.linalg.norm(a) * np.linalg.norm(b)
-    if norms == 0:
-        return 180.0
-    return float(np.degrees(np.arccos(np.clip(a @ b / norms, -1.0, 1.0))))

@@ -84,6 +84,15 @@ def so3_geodesic_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return float(np.linalg.norm(so3_log(R_a.T @ R_b)))
 
 
+def motion_angles_deg(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """How far apart two relative motions are where the scale is unknown (two views): the angle of the rotation
+    between them and the angle between their translation directions, in degrees (90 for a translation of zero)."""
+    rotation = float(np.degrees(so3_geodesic_angle(T_a[:3, :3], T_b[:3, :3])))
+    a, b = T_a[:3, 3], T_b[:3, 3]
+    cosine = a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12)
+    return rotation, float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
 # ----------------------------------------------------------------------------------------------- SE(3)
 
 
