@@ -41,7 +41,7 @@ from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.init.registry import initializer_factory
 
-IMPLEMENTED_METHODS = ("fdmo", "klt", "direct")
+IMPLEMENTED_METHODS = ("fdmo", "klt", "direct", "features")
 DIRECT_METHODS = ("fdmo", "direct")
 
 
@@ -55,12 +55,17 @@ class FrontEnd(Protocol):
 
 
 def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
-    """The pipeline of a method that runs on its own (the KLT baseline); None for the direct methods, whose
-    per-frame flow is ``Odometry.track``'s. Methods that do not exist yet are refused, never faked."""
+    """The pipeline of a method that runs on its own (the KLT baseline, the feature-based odometry); None for the
+    direct methods, whose per-frame flow is ``Odometry.track``'s. Methods that do not exist yet are refused, never
+    faked."""
     if config.method == "klt":
         from vo_core.klt.pipeline import KltOdometry
 
         return KltOdometry(config.klt, camera, seed=config.seed)
+    if config.method == "features":
+        from vo_core.features.feature_only import FeatureOnlyOdometry
+
+        return FeatureOnlyOdometry(config.features, camera, seed=config.seed)
     if config.method in DIRECT_METHODS:
         return None
     raise InputError(

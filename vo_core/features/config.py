@@ -111,9 +111,89 @@ class RecoveryConfig:
 
 
 @dataclass
+class OrbInitializationConfig:
+    """``--method features``: the map's start from two frames (ORB-SLAM2 Tracking::MonocularInitialization and
+    CreateInitialMapMonocular); the two-view model selection itself is vo_core/geometry/two_view.py's."""
+
+    min_features: int = 100  # ORB-SLAM2 MonocularInitialization: both frames need more than 100 keypoints
+    min_matches: int = 100  # ORB-SLAM2: fewer matches with the reference and the next frame becomes the reference
+    search_radius_px: float = 100.0  # ORB-SLAM2 SearchForInitialization(..., windowSize = 100)
+    max_distance: int = 50  # ORB-SLAM2 SearchForInitialization: TH_LOW
+    ratio: float = 0.9  # ORB-SLAM2 MonocularInitialization: ORBmatcher matcher(0.9, true)
+    ba_iterations: int = 20  # ORB-SLAM2 CreateInitialMapMonocular: GlobalBundleAdjustemnt(mpMap, 20)
+    min_map_points: int = 100  # ORB-SLAM2 CreateInitialMapMonocular: reset below 100 tracked map points
+    # ORB-SLAM2 Tracking::Track: lost with at most 5 keyframes in the map, the system resets (a new start)
+    reset_when_lost_below_keyframes: int = 6
+
+
+@dataclass
+class TrackingConfig:
+    """``--method features``: ORB-SLAM2 Tracking (TrackWithMotionModel, TrackReferenceKeyFrame, TrackLocalMap,
+    NeedNewKeyFrame), monocular values."""
+
+    motion_radius_px: float = 15.0  # ORB-SLAM2 TrackWithMotionModel: th = 15 (monocular), times the level's scale
+    motion_ratio: float = 0.9  # ORB-SLAM2 TrackWithMotionModel: ORBmatcher matcher(0.9, true)
+    motion_min_matches: int = 20  # ORB-SLAM2: fewer than 20, search again with twice the radius, then give up
+    min_inliers_after_pose: int = 10  # ORB-SLAM2 TrackWithMotionModel / TrackReferenceKeyFrame: nmatchesMap >= 10
+    reference_ratio: float = 0.7  # ORB-SLAM2 TrackReferenceKeyFrame: ORBmatcher matcher(0.7, true)
+    reference_min_matches: int = 15  # ORB-SLAM2 TrackReferenceKeyFrame: fewer than 15 BoW matches fail
+    max_distance: int = 100  # ORB-SLAM2 SearchByProjection: TH_HIGH
+    # ORB-SLAM2 SearchByProjection(Frame, MapPoints) via RadiusByViewingCos: 4 px (2.5 when seen almost head on)
+    local_map_radius_px: float = 4.0
+    local_map_ratio: float = 0.8  # ORB-SLAM2 SearchLocalPoints: ORBmatcher matcher(0.8)
+    neighbours_per_keyframe: int = 10  # ORB-SLAM2 UpdateLocalKeyFrames: GetBestCovisibilityKeyFrames(10)
+    max_local_keyframes: int = 80  # ORB-SLAM2 UpdateLocalKeyFrames: at most 80 local keyframes
+    min_local_map_inliers: int = 30  # ORB-SLAM2 TrackLocalMap: 30 inliers ...
+    min_local_map_inliers_relocalized: int = 50  # ... 50 within mMaxFrames of a relocalization
+    # ORB-SLAM2 mMaxFrames = fps: a keyframe at the latest this many frames after the last (and no keyframe this
+    # soon after a relocalization); 30 for the synthetic and TUM sequences' 30 Hz.
+    max_frames_between_keyframes: int = 30
+    reference_ratio_keyframe: float = 0.9  # ORB-SLAM2 NeedNewKeyFrame: thRefRatio = 0.9 (monocular) ...
+    reference_ratio_two_keyframes: float = 0.4  # ... 0.4 while the map has a single keyframe
+    min_inliers_for_keyframe: int = 15  # ORB-SLAM2 NeedNewKeyFrame c2: mnMatchesInliers > 15
+    min_observations: int = 3  # ORB-SLAM2 NeedNewKeyFrame: the reference's points seen by 3 keyframes count ...
+    min_observations_two_keyframes: int = 2  # ... 2 while the map has at most 2 keyframes
+
+
+@dataclass
+class LocalMappingConfig:
+    """``--method features``: ORB-SLAM2 LocalMapping (CreateNewMapPoints, MapPointCulling, SearchInNeighbors,
+    Optimizer::LocalBundleAdjustment, KeyFrameCulling), monocular values."""
+
+    triangulation_neighbours: int = 20  # ORB-SLAM2 CreateNewMapPoints: nn = 20 (monocular)
+    min_baseline_depth_ratio: float = 0.01  # ORB-SLAM2 CreateNewMapPoints: baseline / median depth < 0.01 skipped
+    fuse_neighbours: int = 20  # ORB-SLAM2 SearchInNeighbors: nn = 20 (monocular)
+    min_found_ratio: float = 0.25  # ORB-SLAM2 MapPointCulling: found / visible < 0.25 culls a recent point
+    # ORB-SLAM2 MapPointCulling: two keyframes after its creation a point seen by at most 2 (cnThObs) is culled;
+    # after three it is no longer recent
+    culling_keyframes: int = 2
+    culling_max_observations: int = 2
+    recent_keyframes: int = 3
+    ba_first_iterations: int = 5  # ORB-SLAM2 LocalBundleAdjustment: optimize(5) ...
+    ba_second_iterations: int = 10  # ... outliers out, then optimize(10)
+    ba_chi2: float = 5.991  # ORB-SLAM2: chi2 95 % 2 DOF on the level-normalized error; Huber at its root
+    # Keyframes held at least, the map's first among them (ours: ORB-SLAM2 holds keyframe 0 and the keyframes
+    # outside the local ones, which in a small scene are none: one held keyframe leaves the scale free)
+    min_held_keyframes: int = 2
+    redundancy: float = 0.9  # ORB-SLAM2 KeyFrameCulling: 90 % of a keyframe's points seen elsewhere ...
+    redundant_observers: int = 3  # ... by at least 3 other keyframes
+    min_covisibility: int = 15  # ORB-SLAM2 KeyFrame::UpdateConnections: an edge needs 15 shared points
+
+
+@dataclass
+class FeatureOdometryConfig:
+    """``--method features``: ORB-SLAM2's tracking and local mapping as odometry (no loop closing)."""
+
+    initialization: OrbInitializationConfig = field(default_factory=OrbInitializationConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    local_mapping: LocalMappingConfig = field(default_factory=LocalMappingConfig)
+
+
+@dataclass
 class FeatureConfig:
     orb: OrbConfig = field(default_factory=OrbConfig)
     vocabulary: VocabularyConfig = field(default_factory=VocabularyConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
     maintenance: MaintenanceConfig = field(default_factory=MaintenanceConfig)
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
+    odometry: FeatureOdometryConfig = field(default_factory=FeatureOdometryConfig)  # --method features

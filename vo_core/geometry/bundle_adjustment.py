@@ -13,6 +13,12 @@ Why not scipy.optimize.least_squares: its trust-region solver with a sparse Jaco
 stalled on perturbed windows with a robust loss (4.5 px RMS left after 50 evaluations on a window that this
 solver brings to the 0.5 px noise floor in a few iterations; see tests/test_geometry_bundle_adjustment.py).
 
+The dense point-pose table grows as keyframes x points; a local adjustment of ORB-SLAM2's kind (tens of keyframes,
+thousands of points, each seen by a few of them) builds the reduced camera system from the pairs of observations
+that share a point instead (``sparse_schur``): the same equations, in memory and time linear in those pairs.
+Observations may carry an information (1 / sigma^2 of the pyramid level they were detected at, ORB-SLAM2's
+invSigma2): residuals and the Huber threshold are then in units of sigma.
+
 Poses are world-to-camera transforms updated on the left, T_cam_world <- exp(delta) T_cam_world.
 """
 
@@ -48,6 +54,9 @@ class BundleAdjustmentSettings:
 
     huber_px: float = 2.0  # Huber threshold of the reprojection residuals (px)
     max_iterations: int = 10  # Levenberg-Marquardt iterations (each a solve of the reduced camera system)
+    # The reduced camera system from the pairs of observations of each point instead of a dense keyframes x points
+    # table: the same step, for windows of many points (the features method's local bundle adjustment).
+    sparse_schur: bool = False
 
 
 @dataclass
@@ -60,13 +69,15 @@ class WindowProblem:
     observation_pose: np.ndarray  # (L,) index into poses; at most one observation per (pose, point)
     observation_point: np.ndarray  # (L,) index into points
     observation_uv: np.ndarray  # (L, 2) measured pixel
+    # (L,) 1 / sigma^2 of each observation (its pyramid level's); None: every observation weighs 1 (pixels)
+    observation_information: np.ndarray | None = None
 
 
 @dataclass
 class WindowSolution:
     poses_world_cam: np.ndarray
     points_world: np.ndarray
-    errors_before: np.ndarray  # (L,) reprojection error (px) of each observation before
+    errors_before: np.ndarray  # (L,) reprojection error of each observation before (px, or sigmas with information)
     errors_after: np.ndarray  # (L,) and after
     iterations: int
 
@@ -74,11 +85,14 @@ class WindowSolution:
 class _Window:
     """The reprojection model of a window, evaluated at given poses and points."""
 
-    def __init__(self, camera: PinholeCamera, problem: WindowProblem):
+    def __init__(self, camera: PinholeCamera, problem: WindowProblem, sparse: bool = False):
         self.camera = camera
         self.problem = problem
         self.num_poses = len(problem.fixed)
         self.num_points = len(problem.points_world)
+        information = problem.observation_information
+        self.sqrt_information = None if information is None else np.sqrt(np.asarray(information, float))
+        self.pairs = _observation_pairs(problem.observation_point, self.num_points) if sparse else None
 
     def project(self, T_cam_world: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(camera-frame points (L, 3), residuals (L, 2)) of every observation."""
@@ -86,12 +100,17 @@ class _Window:
         R = T_cam_world[problem.observation_pose, :3, :3]
         t = T_cam_world[problem.observation_pose, :3, 3]
         p = np.einsum("nij,nj->ni", R, points[problem.observation_point]) + t
-        return p, project_points(self.camera, p) - problem.observation_uv
+        residuals = project_points(self.camera, p) - problem.observation_uv
+        if self.sqrt_information is not None:
+            residuals *= self.sqrt_information[:, None]
+        return p, residuals
 
     def jacobians(self, T_cam_world: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """d(residual)/d(pose increment) (L, 2, 6) and d(residual)/d(point) (L, 2, 3)."""
         J_proj = projection_jacobians(self.camera, p)
         d_pose = pose_jacobians(p)
+        if self.sqrt_information is not None:
+            J_proj = J_proj * self.sqrt_information[:, None, None]
         R = T_cam_world[self.problem.observation_pose, :3, :3]
         return J_proj @ d_pose, J_proj @ R
 
@@ -119,6 +138,8 @@ class _Window:
         H_pp += (damping * np.einsum("fii->fi", H_pp) + DIAGONAL_FLOOR)[:, :, None] * np.eye(6)
         V += (damping * np.einsum("mii->mi", V) + DIAGONAL_FLOOR)[:, :, None] * np.eye(3)
         V_inv = np.linalg.inv(V)
+        if self.pairs is not None:
+            return self._sparse_step(H_pp, b_p, b_l, V_inv, wJp_T @ J_point)
         # The point-pose blocks W (one per observation) and W V^-1, laid out as (pose, 6) x (point, 3)
         # matrices so that the sums over points become matrix products.
         W_obs = wJp_T @ J_point  # (L, 6, 3)
@@ -141,10 +162,42 @@ class _Window:
         delta_pose = delta_pose.reshape(F, 6)
         return delta_pose, delta_point
 
+    def _sparse_step(self, H_pp, b_p, b_l, V_inv, W_obs) -> tuple[np.ndarray, np.ndarray]:
+        """The Schur complement step from the observations: S_ab = H_aa [a = b] - sum over the points j seen by
+        both a and b of W_aj V_j^-1 W_bj^T, one 6x6 product per pair of observations of a point."""
+        problem = self.problem
+        F, M = self.num_poses, self.num_points
+        a, j = problem.observation_pose, problem.observation_point
+        first, second = self.pairs
+        Y_obs = W_obs @ V_inv[j]  # (L, 6, 3)
+        coupling = sum_by(a[first] * F + a[second], Y_obs[first] @ W_obs[second].transpose(0, 2, 1), F * F)
+        S = block_diag(*H_pp) - coupling.reshape(F, F, 6, 6).transpose(0, 2, 1, 3).reshape(6 * F, 6 * F)
+        rhs = (b_p - sum_by(a, (Y_obs @ b_l[j][:, :, None])[:, :, 0], F)).reshape(-1)
+        free = np.repeat(~problem.fixed, 6)
+        delta_pose = np.zeros(6 * F)
+        delta_pose[free] = np.linalg.solve(S[np.ix_(free, free)], rhs[free])
+        delta_pose = delta_pose.reshape(F, 6)
+        W_T_delta = sum_by(j, (W_obs.transpose(0, 2, 1) @ delta_pose[a][:, :, None])[:, :, 0], M)
+        delta_point = (V_inv @ (b_l - W_T_delta)[:, :, None])[:, :, 0]
+        return delta_pose, delta_point
+
+
+def _observation_pairs(point_index: np.ndarray, num_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (l1, l2) of observations of the same point, (l, l) included, as two index arrays."""
+    order = np.argsort(point_index, kind="stable")
+    counts = np.bincount(point_index, minlength=num_points)
+    starts = np.cumsum(counts) - counts
+    pairs_per_point = counts**2
+    owner = np.repeat(np.arange(num_points), pairs_per_point)
+    local = np.arange(int(pairs_per_point.sum())) - np.repeat(np.cumsum(pairs_per_point) - pairs_per_point,
+                                                              pairs_per_point)
+    size = counts[owner]
+    return order[starts[owner] + local // size], order[starts[owner] + local % size]
+
 
 def adjust_window(camera: PinholeCamera, problem: WindowProblem, settings: BundleAdjustmentSettings) -> WindowSolution:
     """Minimize sum rho_Huber(|pi(T_cam_world X) - uv|) over the free poses and all points."""
-    window = _Window(camera, problem)
+    window = _Window(camera, problem, sparse=settings.sparse_schur)
     T_cam_world = np.stack([se3_inverse(T) for T in problem.poses_world_cam])
     points = problem.points_world.copy()
     p, residuals = window.project(T_cam_world, points)

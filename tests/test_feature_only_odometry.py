@@ -1,0 +1,131 @@
+"""``--method features`` (ORB-SLAM2's tracking and local mapping as odometry) on rendered sequences: accuracy against
+the truth, its events, relocalization after a jump back to a seen place; and the sparse Schur complement of the
+local bundle adjustment against the dense one."""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vo_core.config import load_config
+from vo_core.eval.metrics import evaluate
+from vo_core.events import EventKind
+from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, adjust_window
+from vo_core.synthetic import make_sequence
+from vo_core.system import IMPLEMENTED_METHODS, Odometry
+from vo_core.trajectory import Trajectory
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_geometry_bundle_adjustment import CAMERA as BA_CAMERA  # noqa: E402
+from test_geometry_bundle_adjustment import make_window  # noqa: E402
+
+WIDTH, HEIGHT = 320, 240
+
+
+def run(frames, camera, overrides=()):
+    odometry = Odometry(load_config(overrides=["method=features", *overrides]), camera)
+    return [odometry.track(frame) for frame in frames], odometry
+
+
+def ate(results, ground_truth) -> float:
+    posed = [r for r in results if r.T_world_cam is not None]
+    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    return evaluate(estimate, ground_truth)["ate"]["rmse"]
+
+
+def path_length(sequence) -> float:
+    return float(np.sum(np.linalg.norm(np.diff(sequence.ground_truth.positions, axis=0), axis=1)))
+
+
+def kinds(results) -> list[EventKind]:
+    return [event.kind for result in results for event in result.events]
+
+
+def test_features_is_an_implemented_method():
+    assert "features" in IMPLEMENTED_METHODS
+
+
+@pytest.fixture(scope="module")
+def smooth():
+    sequence = make_sequence("smooth", 50, seed=0, width=WIDTH, height=HEIGHT)
+    results, odometry = run(list(sequence), sequence.camera)
+    return sequence, results, odometry
+
+
+def test_smooth_sequence_is_tracked_within_a_small_share_of_its_path(smooth):
+    sequence, results, _ = smooth
+    posed = [r for r in results if r.T_world_cam is not None]
+    first = posed[0].frame_index
+    assert first <= 20  # measured: the start at frame 13
+    assert all(r.T_world_cam is not None for r in results[first:])  # nothing lost once started
+    assert ate(results, sequence.ground_truth) < 0.01 * path_length(sequence)  # measured: 0.4 % of 0.8 m
+
+
+def test_the_run_reports_its_start_keyframes_local_mapping_and_culling(smooth):
+    _, results, odometry = smooth
+    happened = kinds(results)
+    for kind in (EventKind.INITIALIZATION_STARTED, EventKind.INITIALIZER_MODEL, EventKind.INITIALIZATION_SUCCEEDED,
+                 EventKind.KEYFRAME_ADDED, EventKind.WINDOW_OPTIMIZED):
+        assert kind in happened
+    assert EventKind.TRACKING_FAILED not in happened
+    keyframes = [r for r in results if r.is_keyframe]
+    assert len(keyframes) >= 5 and all("local_mapping" in r.timings_ms for r in keyframes)
+    added = [e.details for r in results for e in r.events if e.kind is EventKind.KEYFRAME_ADDED]
+    assert sum(d["new_points"] for d in added) > 500  # triangulation with the covisible keyframes
+    snapshot = odometry.map_snapshot()
+    assert len(snapshot.feature_points_world) > 300 and len(snapshot.keyframe_poses) >= 3
+
+
+def test_same_input_same_trajectory(smooth):
+    sequence, results, _ = smooth
+    again, _ = run(list(sequence)[:30], sequence.camera)
+    for first, second in zip(results[:30], again):
+        assert (first.T_world_cam is None) == (second.T_world_cam is None)
+        if first.T_world_cam is not None:
+            np.testing.assert_array_equal(first.T_world_cam, second.T_world_cam)
+
+
+@pytest.mark.parametrize("preset, share", [("planar", 0.05), ("forward", 0.05)])
+def test_planar_and_forward_sequences_are_tracked(preset, share):
+    sequence = make_sequence(preset, 45, seed=0, width=WIDTH, height=HEIGHT)
+    results, _ = run(list(sequence), sequence.camera)
+    posed = [r for r in results if r.T_world_cam is not None]
+    assert len(posed) >= 30
+    assert ate(results, sequence.ground_truth) < share * path_length(sequence)
+
+
+def test_a_jump_back_to_a_seen_place_is_relocalized(smooth):
+    """After 50 frames the view goes black (tracking is lost), then comes back at frame 20's place: the global
+    bag-of-words search brings tracking back there, in the same map."""
+    sequence, _, _ = smooth
+    frames = list(sequence)
+    black = [dataclasses.replace(f, image=np.zeros_like(f.image)) for f in frames[47:50]]
+    played = frames[:47] + black + frames[20:30]
+    results, _ = run([f if i < 50 else _played_again(f, 50 - 20) for i, f in enumerate(played)], sequence.camera)
+    happened = kinds(results[47:])
+    assert EventKind.TRACKING_FAILED in happened and EventKind.RECOVERY_SUCCEEDED in happened
+    assert EventKind.REINITIALIZATION not in happened
+    assert sum(r.T_world_cam is not None for r in results[50:]) >= 7
+    # Every posed frame, the revisited ones included, one Sim(3) away from the truth of the place it shows.
+    posed = [(r.T_world_cam, f.T_world_cam) for r, f in zip(results, played) if r.T_world_cam is not None]
+    times = np.arange(len(posed), dtype=float)
+    estimate = Trajectory(times, np.array([estimated for estimated, _ in posed]))
+    truth = Trajectory(times, np.array([true for _, true in posed]))
+    assert evaluate(estimate, truth)["ate"]["rmse"] < 0.01 * path_length(sequence)
+
+
+def _played_again(frame, frames_later: int):
+    """The same image shown again ``frames_later`` frames later (a jump back to a seen place, time going on)."""
+    return dataclasses.replace(frame, index=frame.index + 1000, timestamp=frame.timestamp + frames_later / 30.0)
+
+
+def test_the_sparse_schur_complement_takes_the_dense_step():
+    _, _, problem, _ = make_window(seed=1, outliers=40)
+    dense = adjust_window(BA_CAMERA, problem, BundleAdjustmentSettings())
+    sparse = adjust_window(BA_CAMERA, problem, BundleAdjustmentSettings(sparse_schur=True))
+    np.testing.assert_allclose(sparse.poses_world_cam, dense.poses_world_cam, atol=1e-9)
+    np.testing.assert_allclose(sparse.points_world, dense.points_world, atol=1e-8)

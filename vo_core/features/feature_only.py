@@ -1,0 +1,274 @@
+"""``--method features``: ORB-SLAM2's tracking and local mapping as odometry, no loop closing (the feature-based
+system FDMO is compared with, on the same inputs and with the same outputs).
+
+Per frame:
+
+    not initialized: ORB features into the two-frame start (orb_initializer.py); once it has a map, the map's
+        two keyframes, and local mapping of the second
+    tracking: motion model or reference keyframe, then the local map (feature_tracking.py); where tracking
+        wants a keyframe, the frame becomes one and local mapping runs on it (local_mapping.py) before the next
+        frame: ORB-SLAM2's two threads, one after the other
+    lost: no pose; while the map has at most 5 keyframes it starts over (ORB-SLAM2's reset), at the last pose
+        and the old map's scene depth as unit; otherwise every frame tries the global relocalization
+
+The ORB extractor, the vocabulary, the feature map and its covisibility, the matchers, the pose-only
+optimization, the relocalization and the triangulation are the ones FDMO's feature half uses; this method adds the
+state machine and the local mapping with free poses. Like the KLT baseline it is a pipeline of its own: it
+returns results with their events and never talks to sinks (vo_core/system.py does).
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from enum import Enum
+
+import cv2
+import numpy as np
+
+from vo_core.direct.motion_model import extrapolate
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.features.config import FeatureConfig
+from vo_core.features.feature_map import FeatureKeyframe, FeatureMap
+from vo_core.features.feature_tracking import FeatureTracker, TrackedFrame, TrackingOutcome
+from vo_core.features.local_mapping import LocalMapper, LocalMappingReport
+from vo_core.features.mapping import FeatureMapper
+from vo_core.features.orb_initializer import OrbInitializer, TwoFrameMap
+from vo_core.features.recovery import FrameFeatures, Relocalizer
+from vo_core.features.vocabulary import load_vocabulary
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import transform_points
+
+# ORB-SLAM2 Track: a frame within 2 frames of a relocalization has no velocity yet (mnLastRelocFrameId + 2).
+FRAMES_WITHOUT_VELOCITY_AFTER_RELOCALIZATION = 2
+
+
+class State(Enum):
+    NOT_INITIALIZED = "not_initialized"
+    OK = "ok"
+    LOST = "lost"
+
+
+class FeatureOnlyOdometry:
+    def __init__(self, config: FeatureConfig, camera: PinholeCamera, seed: int = 0):
+        self.config = config
+        self.camera = camera
+        self.seed = seed
+        vocabulary = load_vocabulary(config.vocabulary)
+        self.relocalizer = Relocalizer(config, camera, vocabulary)
+        self.tracker = FeatureTracker(config, camera, self.relocalizer)
+        self.local_mapper = LocalMapper(config, camera, FeatureMapper(config, camera, vocabulary))
+        self.initializer = OrbInitializer(config, camera, seed)
+        self.map = FeatureMap()
+        self.state = State.NOT_INITIALIZED
+        self.last: TrackedFrame | None = None
+        self.posed: list[tuple[float, np.ndarray]] = []  # the last two poses (timestamp, T_world_cam): velocity
+        self.frames_processed = 0
+        self.relocalized_at = -np.inf  # frames_processed at the last relocalization
+        self.T_world_origin = np.eye(4)  # where the next map's first keyframe goes, and its scene depth
+        self.origin_depth = 1.0
+        self._events: list[Event] = []
+        self._timings: dict[str, float] = {}
+        self._frame = None
+
+    # ------------------------------------------------------------------------------------ per frame
+
+    def process(self, frame) -> FrameResult:
+        self._events, self._timings, self._frame = [], {}, frame
+        cv2.setRNGSeed(self.seed + frame.index)  # OpenCV's RANSAC (relocalization) draws from its global generator
+        start = time.perf_counter()
+        if self.state is State.LOST:
+            result = self._relocalize(frame)
+        else:
+            with self._stage("orb"):
+                features = self.relocalizer.extract(frame.image)
+            if self.state is State.NOT_INITIALIZED:
+                result = self._initialize(frame, features)
+            else:
+                result = self._track(frame, features)
+        self.frames_processed += 1
+        self._timings["total"] = (time.perf_counter() - start) * 1000.0
+        result.timings_ms, result.events = self._timings, self._events
+        return result
+
+    def map_snapshot(self) -> MapSnapshot:
+        points = self.map.points
+        return MapSnapshot(
+            feature_points_world=points.position[points.alive].copy(),
+            keyframe_poses={k.frame_index: k.T_world_cam.copy() for k in self.map.keyframes.values()},
+        )
+
+    # ------------------------------------------------------------------------------------ initialization
+
+    def _initialize(self, frame, features: FrameFeatures) -> FrameResult:
+        with self._stage("initialization"):
+            step = self.initializer.step(frame.index, frame.timestamp, features)
+        if step.failure is not None and (step.started or self.initializer.reference is None):
+            self._emit(EventKind.INITIALIZATION_FAILED, reason=step.failure)
+        if step.started:
+            self._emit(EventKind.INITIALIZATION_STARTED, reference_frame=frame.index, features=len(features.features))
+        if step.model is not None:
+            self._emit(EventKind.INITIALIZER_MODEL, **step.model)
+        if step.map is None:
+            return self._no_pose(features.features.uv)
+        return self._start_map(frame, features, step.map)
+
+    def _start_map(self, frame, features: FrameFeatures, start: TwoFrameMap) -> FrameResult:
+        """ORB-SLAM2 CreateInitialMapMonocular: the two keyframes and their points, placed at the origin with the
+        origin's scene depth as unit, then local mapping of the second keyframe."""
+        T_first_second = start.T_first_second.copy()
+        T_first_second[:3, 3] *= self.origin_depth
+        first = self._new_keyframe(start.first_index, start.first_timestamp, start.first, self.T_world_origin)
+        second = self._new_keyframe(frame.index, frame.timestamp, features, self.T_world_origin @ T_first_second)
+        points = transform_points(self.T_world_origin, self.origin_depth * start.points_first)
+        level = second.features.level[start.feature_second]
+        ids = self.map.points.add(points, second.features.descriptors[start.feature_second], second.keyframe_id,
+                                  np.linalg.norm(points - second.centre, axis=1), level)
+        first.point_ids[start.feature_first] = ids
+        second.point_ids[start.feature_second] = ids
+        self.map.representative_descriptors(ids)
+        self.map.update_normals(ids)
+        self._emit(EventKind.INITIALIZATION_SUCCEEDED, **start.details, second_frame=frame.index)
+        tracked = TrackedFrame(frame.index, frame.timestamp, features, second.T_world_cam, second.point_ids.copy(),
+                               second.frame_index)
+        self.state = State.OK
+        self.posed = [(start.first_timestamp, first.T_world_cam)]
+        self._map_keyframe(second, tracked)
+        self._moved_to(tracked)
+        return self._pose_result(tracked, None, is_keyframe=True, inliers=len(ids))
+
+    # ------------------------------------------------------------------------------------ tracking
+
+    def _track(self, frame, features: FrameFeatures) -> FrameResult:
+        current = TrackedFrame(frame.index, frame.timestamp, features, reference_keyframe=self.last.reference_keyframe)
+        with self._stage("track"):
+            outcome = self.tracker.track(self.map, current, self.last, self._predicted(frame.timestamp),
+                                         self._relocalized_recently())
+        if not outcome.succeeded:
+            return self._lost(frame, current, outcome)
+        return self._tracked(current, outcome)
+
+    def _tracked(self, current: TrackedFrame, outcome: TrackingOutcome) -> FrameResult:
+        """A frame with a pose: its points' statistics, the keyframe decision, the motion model."""
+        matched = current.point_ids[current.matched]
+        self.local_mapper.statistics.count(len(self.map.points), outcome.visible_points, matched)
+        last = self.last
+        keyframe = None
+        wanted = self.tracker.needs_keyframe(self.map, current, outcome.inliers, self._relocalized_recently())
+        if wanted and current.frame_index not in self.map.keyframes:
+            keyframe = self._new_keyframe(current.frame_index, current.timestamp, current.features,
+                                          current.T_world_cam, current.point_ids.copy())
+            self._map_keyframe(keyframe, current)
+        self._moved_to(current)
+        return self._pose_result(current, last, is_keyframe=keyframe is not None, inliers=outcome.inliers)
+
+    def _predicted(self, timestamp: float) -> np.ndarray | None:
+        """The constant-velocity pose (ORB-SLAM2's motion model, over the time that passed); None without a
+        velocity (just after the start's first frame is lost or a relocalization)."""
+        if len(self.posed) < 2:
+            return None
+        if self.frames_processed < self.relocalized_at + FRAMES_WITHOUT_VELOCITY_AFTER_RELOCALIZATION:
+            return None
+        return extrapolate(self.posed, timestamp)
+
+    def _relocalized_recently(self) -> bool:
+        frames = self.config.odometry.tracking.max_frames_between_keyframes
+        return self.frames_processed < self.relocalized_at + frames
+
+    def _moved_to(self, current: TrackedFrame) -> None:
+        self.posed = (self.posed + [(current.timestamp, current.T_world_cam)])[-2:]
+        self.last = current
+
+    # ------------------------------------------------------------------------------------ lost, relocalized
+
+    def _lost(self, frame, current: TrackedFrame, outcome: TrackingOutcome) -> FrameResult:
+        """No pose. A young map starts over (ORB-SLAM2 resets with at most 5 keyframes), from where the camera
+        was and at its scene depth; an established one waits for the relocalization."""
+        self._emit(EventKind.TRACKING_FAILED, reason=outcome.reason, stage=outcome.stage, keyframes=len(self.map))
+        if len(self.map) >= self.config.odometry.initialization.reset_when_lost_below_keyframes:
+            self.state = State.LOST
+            return self._no_pose(current.features.features.uv)
+        newest = self.map.newest()
+        self.T_world_origin = self.last.T_world_cam
+        self.origin_depth = newest.scene_depth if np.isfinite(newest.scene_depth) else self.origin_depth
+        self._emit(EventKind.REINITIALIZATION, from_frame=frame.index, keyframes=len(self.map))
+        self.map = FeatureMap()
+        self.local_mapper.reset()
+        self.initializer.reset()
+        self.posed, self.last = [], None
+        self.state = State.NOT_INITIALIZED
+        return self._initialize(frame, current.features)
+
+    def _relocalize(self, frame) -> FrameResult:
+        with self._stage("relocalization"):
+            current, outcome = self.tracker.relocalize(self.map, frame.image, frame.index, frame.timestamp)
+        recovery = outcome.relocalization
+        self._emit(EventKind.RECOVERY_TRIED, candidates=recovery.candidates)
+        if not outcome.succeeded:
+            details = recovery.details() if not recovery.succeeded else {"stage": outcome.stage}
+            self._emit(EventKind.RECOVERY_FAILED, **{**details, "reason": outcome.reason})
+            return self._no_pose(current.features.features.uv)
+        self._emit(EventKind.RECOVERY_SUCCEEDED, **recovery.details(), local_map_inliers=outcome.inliers)
+        self.state = State.OK
+        self.relocalized_at = self.frames_processed
+        self.posed = []  # no velocity across the gap
+        return self._tracked(current, outcome)
+
+    # ------------------------------------------------------------------------------------ keyframes
+
+    def _new_keyframe(self, frame_index: int, timestamp: float, features: FrameFeatures, T_world_cam: np.ndarray,
+                      point_ids: np.ndarray | None = None) -> FeatureKeyframe:
+        keyframe = FeatureKeyframe(self.map.next_keyframe_id, frame_index, timestamp, T_world_cam.copy(),
+                                   features.features, features.bow, features.nodes, point_ids=point_ids,
+                                   in_direct_window=False)
+        self.map.add_keyframe(keyframe)
+        return keyframe
+
+    def _map_keyframe(self, keyframe: FeatureKeyframe, current: TrackedFrame) -> LocalMappingReport:
+        """Local mapping on the new keyframe; the frame takes the keyframe's adjusted pose and follows a
+        renumbering of the points."""
+        with self._stage("local_mapping"):
+            report = self.local_mapper.process(self.map, keyframe)
+        if report.renumbered is not None and self.last is not None:  # the frame takes the keyframe's ids below
+            observed = self.last.matched
+            self.last.point_ids[observed] = report.renumbered[self.last.point_ids[observed]]
+        current.T_world_cam = keyframe.T_world_cam.copy()
+        current.point_ids = keyframe.point_ids.copy()
+        current.reference_keyframe = keyframe.frame_index
+        self._emit(EventKind.KEYFRAME_ADDED, **report.as_details())
+        if report.culled_points:
+            self._emit(EventKind.MAP_POINTS_CULLED, count=report.culled_points, reason="MapPointCulling")
+        if report.ba_keyframes:
+            self._emit(EventKind.WINDOW_OPTIMIZED, keyframes=report.ba_keyframes, landmarks=report.ba_points,
+                       rms_before_sigma=round(report.ba_rms_before, 3), rms_after_sigma=round(report.ba_rms_after, 3))
+        for culled in report.culled_keyframes:
+            self._emit(EventKind.FEATURE_KEYFRAME_CULLED, keyframe=culled, reason="KeyFrameCulling: redundant")
+        return report
+
+    # ------------------------------------------------------------------------------------ output
+
+    def _pose_result(self, current: TrackedFrame, last: TrackedFrame | None, is_keyframe: bool,
+                     inliers: int) -> FrameResult:
+        features = current.features.features
+        matched = current.matched
+        result = FrameResult(self._frame.index, self._frame.timestamp, current.T_world_cam.copy(), tracked=True,
+                             is_keyframe=is_keyframe, num_inliers=inliers, points_2d=features.uv[matched].copy())
+        if last is not None:
+            shared, in_current, in_last = np.intersect1d(current.point_ids[matched], last.point_ids[last.matched],
+                                                         return_indices=True)
+            result.matches_2d = np.hstack([last.features.features.uv[last.matched[in_last]],
+                                           features.uv[matched[in_current]]])
+        return result
+
+    def _no_pose(self, points_2d: np.ndarray) -> FrameResult:
+        return FrameResult(self._frame.index, self._frame.timestamp, None, tracked=False,
+                           points_2d=np.asarray(points_2d).copy())
+
+    def _emit(self, kind: EventKind, **details) -> None:
+        self._events.append(Event(kind, self._frame.index, float(self._frame.timestamp), details))
+
+    @contextmanager
+    def _stage(self, name: str):
+        start = time.perf_counter()
+        yield
+        self._timings[name] = self._timings.get(name, 0.0) + (time.perf_counter() - start) * 1000.0
