@@ -116,6 +116,7 @@ class OrbInitializationConfig:
     CreateInitialMapMonocular); the two-view model selection itself is vo_core/geometry/two_view.py's."""
 
     min_features: int = 100  # ORB-SLAM2 MonocularInitialization: both frames need more than 100 keypoints
+    features_factor: int = 2  # ORB-SLAM2 Tracking: mpIniORBextractor extracts 2 x nFeatures until the start
     min_matches: int = 100  # ORB-SLAM2: fewer matches with the reference and the next frame becomes the reference
     search_radius_px: float = 100.0  # ORB-SLAM2 SearchForInitialization(..., windowSize = 100)
     max_distance: int = 50  # ORB-SLAM2 SearchForInitialization: TH_LOW

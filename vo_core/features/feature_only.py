@@ -19,6 +19,7 @@ returns results with their events and never talks to sinks (vo_core/system.py do
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from contextlib import contextmanager
 from enum import Enum
@@ -33,6 +34,7 @@ from vo_core.features.feature_map import FeatureKeyframe, FeatureMap
 from vo_core.features.feature_tracking import FeatureTracker, TrackedFrame, TrackingOutcome
 from vo_core.features.local_mapping import LocalMapper, LocalMappingReport
 from vo_core.features.mapping import FeatureMapper
+from vo_core.features.orb import OrbExtractor
 from vo_core.features.orb_initializer import OrbInitializer, TwoFrameMap
 from vo_core.features.recovery import FrameFeatures, Relocalizer
 from vo_core.features.vocabulary import load_vocabulary
@@ -55,6 +57,9 @@ class FeatureOnlyOdometry:
         self.camera = camera
         self.seed = seed
         vocabulary = load_vocabulary(config.vocabulary)
+        self.vocabulary = vocabulary
+        start_features = config.odometry.initialization.features_factor * config.orb.num_features
+        self.start_extractor = OrbExtractor(dataclasses.replace(config.orb, num_features=start_features))
         self.relocalizer = Relocalizer(config, camera, vocabulary)
         self.tracker = FeatureTracker(config, camera, self.relocalizer)
         self.local_mapper = LocalMapper(config, camera, FeatureMapper(config, camera, vocabulary))
@@ -81,7 +86,8 @@ class FeatureOnlyOdometry:
             result = self._relocalize(frame)
         else:
             with self._stage("orb"):
-                features = self.relocalizer.extract(frame.image)
+                features = (self._extract_for_start(frame.image) if self.state is State.NOT_INITIALIZED
+                            else self.relocalizer.extract(frame.image))
             if self.state is State.NOT_INITIALIZED:
                 result = self._initialize(frame, features)
             else:
@@ -112,6 +118,12 @@ class FeatureOnlyOdometry:
         if step.map is None:
             return self._no_pose(features.features.uv)
         return self._start_map(frame, features, step.map)
+
+    def _extract_for_start(self, image: np.ndarray) -> FrameFeatures:
+        """More features until the start (ORB-SLAM2's initialization extractor): more matches to choose from."""
+        features = self.start_extractor.extract(image)
+        bow, nodes = self.vocabulary.transform(features.descriptors)
+        return FrameFeatures(features, bow, nodes, 0.0)
 
     def _start_map(self, frame, features: FrameFeatures, start: TwoFrameMap) -> FrameResult:
         """ORB-SLAM2 CreateInitialMapMonocular: the two keyframes and their points, placed at the origin with the
