@@ -1,4 +1,4 @@
-"""The command line: ``fdmo run | eval | info | plot | vocabulary | experiment``.
+"""The command line: ``fdmo run | eval | info | plot | vocabulary | experiment | bench``.
 
     fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
              [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...] [--gt FILE]
@@ -8,6 +8,7 @@
     fdmo vocabulary train IMAGE... --out FILE [--branching K] [--depth L] [--seed S]
     fdmo plot RESULT_DIR [--out FILE] [--gt FILE] [--align sim3|se3|none] [--plane xy|xz|yz]
     fdmo experiment frame-drop|two-loop|timing SOURCE [--methods fdmo,direct,klt] [--out DIR] ...
+    fdmo bench MATRIX.yaml [--workers N] [--ray auto|ADDRESS] [--out DIR] [--retry-failed]
 
 Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
 when the reader of the output went away (``fdmo info X | head``). The viewers and matplotlib are imported only
@@ -94,9 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
 
     run = commands.add_parser("run", help="run the odometry over a sequence and write the result files")
-    run.add_argument("source", nargs="?", help="dataset folder or video (default: the bundled sequence)")
+    run.add_argument("source", nargs="?", help="dataset folder or video, or synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] "
+                                                "(vo_core.synthetic; default: the bundled sequence)")
     run.add_argument("--out", type=Path, help="results folder (default: results/<sequence>_<time>/)")
-    run.add_argument("--method", choices=METHODS, help=_method_help())
+    run.add_argument("--method", choices=METHODS, help=f"overrides the configuration's method (default: {Config.method})")
     run.add_argument("--config", type=Path, help="YAML configuration (the format of config.yaml)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one setting, e.g. --set direct.tracker.huber_threshold=9 (repeatable)")
@@ -155,15 +157,13 @@ def build_parser() -> argparse.ArgumentParser:
     experiment = commands.add_parser("experiment", help="the experiments of FDMO section 5: frame-drop, two-loop, "
                                                         "timing")
     add_experiment_parsers(experiment, _OneLineParser, _add_source_options)
+
+    from app.bench import add_arguments as add_bench_arguments
+
+    bench = commands.add_parser("bench", help="a matrix of sequences x methods x settings x seeds, each cell a "
+                                              "process, on this machine or a Ray cluster, gathered in one table")
+    add_bench_arguments(bench)
     return parser
-
-
-def _method_help() -> str:
-    import vo_core.system  # read when the parser is built: methods land there as they are implemented
-
-    text = f"overrides the configuration's method (default: {Config.method})"
-    unavailable = [method for method in METHODS if method not in vo_core.system.IMPLEMENTED_METHODS]
-    return text + (f"; not available yet: {', '.join(unavailable)}" if unavailable else "")
 
 
 def _add_source_options(parser: argparse.ArgumentParser) -> None:
@@ -178,13 +178,13 @@ def _add_source_options(parser: argparse.ArgumentParser) -> None:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from app.pipeline import check_method, open_dataset, run_sequence
+    from app.pipeline import check_method, open_source, run_sequence
     from app.player import Player
 
     overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
-    source = DEFAULT_SEQUENCE if args.source is None else Path(args.source)
-    sequence = open_dataset(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
+    source = DEFAULT_SEQUENCE if args.source is None else args.source
+    sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
     out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
@@ -439,10 +439,17 @@ def command_experiment(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def command_bench(args: argparse.Namespace) -> int:
+    """``fdmo bench MATRIX.yaml``: app/bench/ runs the cells and writes the table."""
+    from app.bench import command_bench as run_bench
+
+    return run_bench(args)
+
+
 # ------------------------------------------------------------------------------------------------ main
 
 COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plot": command_plot,
-            "vocabulary": command_vocabulary, "experiment": command_experiment}
+            "vocabulary": command_vocabulary, "experiment": command_experiment, "bench": command_bench}
 
 
 def main(argv: SequenceOf[str] | None = None) -> int:

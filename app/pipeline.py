@@ -30,6 +30,8 @@ from vo_core.events import Event, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory
 
+SYNTHETIC = "synthetic"  # source synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] (open_source)
+SYNTHETIC_SIZE = (640, 480)
 MIN_POSES_TO_EVALUATE = 3  # a Sim(3) alignment needs three non-collinear positions
 
 # How a pass ended, as metrics.json reports it.
@@ -82,6 +84,29 @@ def open_dataset(source: str | Path, dataset: DatasetConfig, layout: str | None 
     if start is not None or end is not None:
         sequence = sequence.cut(start, end)
     return sequence
+
+
+def open_source(source: str | Path, dataset: DatasetConfig, layout: str | None = None,
+                camera_file: str | Path | None = None, start: int | None = None, end: int | None = None,
+                ground_truth_file: str | Path | None = None):
+    """A dataset folder or video as ``open_dataset`` opens it, or ``synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]``: a
+    sequence rendered by vo_core.synthetic (seed 0), with its exact ground truth."""
+    kind, _, spec = str(source).partition(":")
+    if kind != SYNTHETIC:
+        return open_dataset(source, dataset, layout, camera_file, start, end, ground_truth_file)
+    if layout or camera_file or ground_truth_file:
+        raise InputError(f"{source}: a synthetic sequence has its own layout, camera and ground truth")
+    from vo_core.synthetic import DEFAULT_NUM_FRAMES, make_sequence
+
+    preset, _, rest = spec.partition(":")
+    frames, _, size = rest.partition(":")
+    try:
+        num_frames = int(frames) if frames else DEFAULT_NUM_FRAMES
+        width, height = (int(n) for n in size.split("x")) if size else SYNTHETIC_SIZE
+    except ValueError:
+        raise InputError(f"{source}: expected synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]") from None
+    sequence = make_sequence(preset, num_frames, width=width, height=height)
+    return sequence.cut(start, end) if start is not None or end is not None else sequence
 
 
 def check_method(config: Config, camera) -> None:

@@ -109,3 +109,48 @@ class ProgressBar:
         if tenth > self._last_logged_tenth or (force and self.passed != self._logged_passed):
             self._last_logged_tenth, self._logged_passed = tenth, self.passed
             self.stream.write(self.line() + "\n")
+
+
+class CellProgress:
+    """``fdmo bench``'s line over cells: how many finished (and failed), the time so far and an estimate of the
+    time left: the cells left at the pace the cells finished so far (with several workers, the time between two
+    cells finishing, not the time a cell takes)."""
+
+    def __init__(self, total_cells: int, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic):
+        self.total = total_cells
+        self.stream = stream if stream is not None else sys.stderr
+        self.clock = clock
+        self.interactive = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.started = clock()
+        self.finished = 0
+        self.failed = 0
+
+    def done(self, row: dict[str, Any]) -> None:
+        self.finished += 1
+        self.failed += row["status"] != "ok"
+        last = f"{row['sequence']}/{row['method']}/{row['setting']}/{row['task']}/seed{row['seed']} {row['status']}"
+        self.stream.write(("\r\033[K" if self.interactive else "") + f"{self.line()} | {last}"
+                          + ("" if self.interactive else "\n"))
+        self.stream.flush()
+
+    def line(self) -> str:
+        filled = int(round(BAR_WIDTH * self.finished / max(self.total, 1)))
+        elapsed = self.clock() - self.started
+        left = self.total - self.finished
+        eta = elapsed / self.finished * left if self.finished else float("nan")
+        failed = f" ({self.failed} failed)" if self.failed else ""
+        return (f"[{'#' * filled}{'.' * (BAR_WIDTH - filled)}] {self.finished}/{self.total} cells{failed}"
+                f" | {_clock_time(elapsed)} elapsed, ETA {_clock_time(eta)}")
+
+    def close(self) -> None:
+        if self.interactive and self.finished:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def _clock_time(seconds: float) -> str:
+    if seconds != seconds:  # NaN: nothing to estimate from yet
+        return "?"
+    minutes, secs = divmod(int(round(seconds)), 60)
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}:{minutes:02d}:{secs:02d}" if hours else f"{minutes}:{secs:02d}"

@@ -308,28 +308,13 @@ def test_bad_input_exits_2_with_one_line(argv, message, dataset, tmp_path, capsy
     assert not (tmp_path / "out").exists()  # nothing half-written
 
 
-def test_a_method_that_is_not_available_is_refused_with_one_line(dataset, tmp_path, capsys):
-    unavailable = [method for method in METHODS if method not in vo_core.system.IMPLEMENTED_METHODS]
-    if not unavailable:
-        pytest.skip("every method is implemented")
-    code, _, stderr = run_cli(capsys, "run", dataset, "--method", unavailable[0], "--out", tmp_path / "out")
-    assert code == 2 and stderr.count("\n") == 1 and "not implemented" in stderr
-    assert not (tmp_path / "out").exists()
-
-
-def test_help_lists_the_layouts_the_port_default_and_the_methods_not_available(capsys, monkeypatch):
-    monkeypatch.setattr(vo_core.system, "IMPLEMENTED_METHODS", ("direct", "klt"))
+def test_help_lists_the_layouts_the_methods_and_the_port_default(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["run", "--help"])
     text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines anywhere
     assert exit_info.value.code == 0
-    assert "{" + ",".join(LAYOUTS) + "}" in text
+    assert "{" + ",".join(LAYOUTS) + "}" in text and "{" + ",".join(METHODS) + "}" in text
     assert "port of the viser page (default: 8080)" in text and "(default: 127.0.0.1" in text
-    assert "not available yet: fdmo, features" in text
-    monkeypatch.setattr(vo_core.system, "IMPLEMENTED_METHODS", METHODS)
-    with pytest.raises(SystemExit):
-        main(["run", "--help"])
-    assert "not available" not in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------------------ summary

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.experiments.common import Setup, open_source, truth_at_frames
+from app.experiments.common import Setup, truth_at_frames
 from app.experiments.frame_drop import Protocol, sweep
 from app.experiments.timing import process_samples, table
 from app.experiments.two_loop import loop_shift, loop_spans, looped_truth
+from app.pipeline import open_source
 from vo_core.config import DatasetConfig, load_config
 from vo_core.eval import EvalConfig, ground_truth_gap_end, loop_drifts
 from vo_core.events import Event, EventKind, FrameResult

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from app.pipeline import check_method, open_dataset
+from app.pipeline import check_method, open_source
 from vo_core.config import Config, DatasetConfig, dump_config, load_config
 from vo_core.errors import InputError
 from vo_core.eval import DEFAULT_MAX_DT_S, associate_timestamps
@@ -32,7 +32,6 @@ from vo_core.system import IMPLEMENTED_METHODS, Odometry
 DEFAULT_METHODS = ("fdmo", "direct", "klt")
 RESULTS_ROOT = Path("results")
 TABLE_FILE = "table.md"
-SYNTHETIC = "synthetic"  # SOURCE synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] renders a vo_core.synthetic sequence
 # The events a trial or a loop reports, by the column that counts them.
 EVENT_COLUMNS = {
     "tracking_failures": EventKind.TRACKING_FAILED,
@@ -86,7 +85,7 @@ def set_up(name: str, args: argparse.Namespace, settings: dict[str, Any]) -> Set
     before anything is written), and write them with the experiment's ``settings`` into the results folder."""
     configs = {method: load_config(args.config, [*args.overrides, f"method={method}"]) for method in args.methods}
     first = next(iter(configs.values()))
-    sequence = open_source(args.source, first.dataset, args.layout, args.camera, args.gt)
+    sequence = open_source(args.source, first.dataset, args.layout, args.camera, ground_truth_file=args.gt)
     for config in configs.values():
         check_method(config, sequence.camera)
     out_dir = args.out or RESULTS_ROOT / f"{name}_{sequence.name}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -99,24 +98,6 @@ def set_up(name: str, args: argparse.Namespace, settings: dict[str, Any]) -> Set
                  "methods": list(configs), **settings}
     (out_dir / "experiment.yaml").write_text(yaml.safe_dump(described, sort_keys=False))
     return Setup(name, sequence, configs, out_dir, args.quiet)
-
-
-def open_source(source: str, dataset: DatasetConfig, layout: str | None = None, camera_file: Path | None = None,
-                ground_truth_file: Path | None = None):
-    """A dataset folder as ``fdmo run`` opens it, or ``synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]`` (seed 0)."""
-    kind, _, spec = source.partition(":")
-    if kind != SYNTHETIC:
-        return open_dataset(Path(source), dataset, layout, camera_file, ground_truth_file=ground_truth_file)
-    from vo_core.synthetic import DEFAULT_NUM_FRAMES, make_sequence
-
-    preset, _, rest = spec.partition(":")
-    frames, _, size = rest.partition(":")
-    try:
-        num_frames = int(frames) if frames else DEFAULT_NUM_FRAMES
-        width, height = (int(n) for n in size.split("x")) if size else (640, 480)
-    except ValueError:
-        raise InputError(f"{source}: expected synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]") from None
-    return make_sequence(preset, num_frames, width=width, height=height)
 
 
 def truth_at_frames(sequence) -> dict[int, np.ndarray]:

@@ -1,0 +1,216 @@
+"""fdmo bench: the matrix file, cells as processes, the pool and Ray giving the same table, failures reported,
+resume, Ctrl-C, and the smoke matrix on the bundled sequence."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from app.bench import CELL_FILE, bench
+from app.bench.cell import CELLS_DIR, COLUMNS, OK, TIMEOUT, TIMING_COLUMNS, command
+from app.bench.executors import LOCAL_HOST, LOCAL_RAY, RAY_INSTALL_HINT, run_in_pool, run_on_ray
+from app.bench.matrix import load_matrix, parse_matrix
+from app.bench.report import RESULTS_FILE, TABLE_FILE
+from app.cli import main
+from vo_core.datasets import DEFAULT_SEQUENCE
+from vo_core.errors import InputError
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+SYNTHETIC = "synthetic:smooth:30:160x120"  # klt tracks it in about 2 s a cell, ATE under a centimetre
+SMALL_MATRIX = f"""
+sequences: ["{SYNTHETIC}", no_such_sequence_folder]
+methods: [klt]
+seeds: [0, 1]
+"""
+PLACE_DEPENDENT = {*TIMING_COLUMNS, "folder", "command"}
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def _rows(out_dir: Path) -> list[dict[str, str]]:
+    with (out_dir / RESULTS_FILE).open(newline="") as file:
+        return list(csv.DictReader(file))
+
+
+def _cell_files(out_dir: Path) -> dict[str, float]:
+    return {path.parent.name: path.stat().st_mtime_ns for path in (out_dir / CELLS_DIR).glob(f"*/{CELL_FILE}")}
+
+
+@pytest.fixture(scope="module")
+def pool_bench(tmp_path_factory):
+    """The small matrix (a synthetic sequence and a folder that does not exist, klt, 2 seeds) on a pool of 2."""
+    folder = tmp_path_factory.mktemp("bench")
+    matrix = load_matrix(_write(folder / "matrix.yaml", SMALL_MATRIX))
+    out_dir = folder / "pool"
+    code = bench(matrix, out_dir, lambda jobs: run_in_pool(jobs, 2), quiet=True)
+    return matrix, out_dir, code
+
+
+# ------------------------------------------------------------------------------------------------ the matrix
+
+
+def test_the_matrix_lists_every_cell_with_its_command(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    matrix = parse_matrix({
+        "sequences": [SYNTHETIC, {"path": "data/kitti", "name": "kitti", "format": "kitti", "end": 50}],
+        "methods": ["fdmo", "direct"],
+        "seeds": [0, 1, 2],
+        "settings": {"default": {}, "coarse": {"direct.initializer": "coarse", "fdmo.divergence.epsilon": 0.2}},
+        "tasks": ["run", {"task": "frame-drop", "name": "drop-100", "args": ["--at", 100]}],
+    }, "m.yaml")
+    cells = matrix.cells()
+    assert len(cells) == 2 * 2 * 3 * 2 * 2
+    assert len({cell.key for cell in cells}) == len(cells)
+    kitti = next(cell for cell in cells if cell.sequence.name == "kitti" and cell.setting == "coarse"
+                 and cell.task.name == "run" and cell.seed == 2)
+    assert kitti.sequence.source == str(tmp_path / "data" / "kitti")  # absolute: the cell runs in its own folder
+    argv = command(kitti, tmp_path / "cell", python="python")
+    assert argv[:5] == ["python", "-m", "app", "run", str(tmp_path / "data" / "kitti")]
+    text = " ".join(argv)
+    for part in ("--method fdmo", "--no-rrd", "--end 50", "--format kitti", "--set direct.initializer=coarse",
+                 "--set fdmo.divergence.epsilon=0.2", "--set seed=2", f"--out {tmp_path / 'cell'}"):
+        assert part in text
+    drop = next(cell for cell in cells if cell.task.name == "drop-100" and cell.sequence.name != "kitti")
+    assert command(drop, tmp_path, python="python")[3:7] == ["experiment", "frame-drop", SYNTHETIC, "--methods"]
+    assert command(drop, tmp_path, python="python")[-2:] == ["--at", "100"]
+
+
+def test_the_bundled_sequence_is_named_by_a_word():
+    matrix = load_matrix(REPOSITORY / "configs" / "bench" / "smoke.yaml")
+    assert [sequence.source for sequence in matrix.sequences] == [str(DEFAULT_SEQUENCE)]
+    assert len(matrix.cells()) == 4
+
+
+@pytest.mark.parametrize("text, message", [
+    ("methods: [fdmo]", "no 'sequences' list"),
+    ("sequences: [a]\nmethods: [dso]", "unknown method 'dso'"),
+    ("sequences: [a]\nmethods: [fdmo]\nseeds: [0, 0]", "seeds: 0 appears twice"),
+    ("sequences: [a, b/a]\nmethods: [fdmo]", "sequences: 'a' appears twice"),
+    ("sequences: [a]\nmethods: [fdmo]\ntasks: [loop]", "tasks[0]: expected one of run, frame-drop, two-loop"),
+    ("sequences: [a]\nmethods: [fdmo]\ntimeout_s: -1", "timeout_s: expected a positive number"),
+    ("sequences: [a]\nmethods: [fdmo]\nsettings: {x: 3}", "settings.x: expected a mapping"),
+    ("sequences: [a]\nmethods: [fdmo]\nworkers: 3", "unknown key 'workers'"),
+    ("sequences: [a\nmethods: [fdmo]", "not valid YAML"),
+])
+def test_a_malformed_matrix_is_refused_naming_the_file(tmp_path, text, message):
+    path = _write(tmp_path / "broken.yaml", text)
+    with pytest.raises(InputError, match="broken.yaml") as raised:
+        load_matrix(path)
+    assert message in str(raised.value)
+
+
+# ------------------------------------------------------------------------------------------------ running
+
+
+def test_cells_run_as_processes_and_a_failing_cell_is_reported(pool_bench):
+    _, out_dir, code = pool_bench
+    assert code == 0
+    rows = _rows(out_dir)
+    assert list(rows[0]) == list(COLUMNS)
+    assert [(row["sequence"], row["seed"], row["status"]) for row in rows] == [
+        ("synthetic-smooth-30-160x120", "0", OK), ("synthetic-smooth-30-160x120", "1", OK),
+        ("no_such_sequence_folder", "0", "failed"), ("no_such_sequence_folder", "1", "failed")]
+    for row in rows[:2]:
+        assert float(row["ate_m"]) < 0.03 and float(row["tracked_fraction"]) > 0.6 and float(row["fps"]) > 0
+    for row in rows[2:]:
+        assert "no_such_sequence_folder: no such file or folder" in row["error"]
+    table = (out_dir / TABLE_FILE).read_text()
+    assert "| synthetic-smooth-30-160x120 | klt | 2/2 |" in table
+    assert "| no_such_sequence_folder | klt | 0/2 |" in table
+    assert "cells that did not finish" in table
+    assert (out_dir / "ate.png").stat().st_size > 0 and (out_dir / "trajectories.png").stat().st_size > 0
+
+
+def test_a_second_bench_into_the_same_folder_resumes(pool_bench, tmp_path):
+    matrix, out_dir, _ = pool_bench
+    before = _cell_files(out_dir)
+    assert len(before) == 4
+
+    def nothing_should_run(jobs):
+        raise AssertionError(f"{len(jobs)} cells run again")
+
+    assert bench(matrix, out_dir, nothing_should_run, quiet=True) == 0
+    assert _cell_files(out_dir) == before
+    ran = []
+
+    def record(jobs):
+        ran.extend(job.cell.sequence.name for job in jobs)
+        return run_in_pool(jobs, 2)
+
+    bench(matrix, out_dir, record, retry_failed=True, quiet=True)
+    assert ran == ["no_such_sequence_folder"] * 2
+
+
+def test_a_cell_past_its_timeout_is_stopped_and_reported(tmp_path):
+    matrix = load_matrix(_write(tmp_path / "m.yaml", f"sequences: ['{SYNTHETIC}']\nmethods: [klt]\n"
+                                                      "timeout_s: 0.3\n"))
+    bench(matrix, tmp_path / "out", lambda jobs: run_in_pool(jobs, 1), quiet=True)
+    (row,) = _rows(tmp_path / "out")
+    assert row["status"] == TIMEOUT and "still running after 0.3 s" in row["error"]
+
+
+def test_ctrl_c_keeps_the_finished_cells(tmp_path):
+    matrix = load_matrix(_write(tmp_path / "m.yaml", f"sequences: ['{SYNTHETIC}']\nmethods: [klt]\n"
+                                                      "seeds: [0, 1, 2]\n"))
+
+    def one_cell_then_ctrl_c(jobs):
+        yield from run_in_pool(jobs[:1], 1)
+        raise KeyboardInterrupt
+
+    assert bench(matrix, tmp_path / "out", one_cell_then_ctrl_c, quiet=True) == 130
+    assert [row["seed"] for row in _rows(tmp_path / "out")] == ["0"]
+    assert list(_cell_files(tmp_path / "out")) == [matrix.cells()[0].key]
+
+
+def test_ray_without_ray_installed_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "1")  # restored after the test
+    matrix = _write(tmp_path / "m.yaml", SMALL_MATRIX)
+    assert main(["bench", str(matrix), "--ray", LOCAL_RAY, "--out", str(tmp_path / "out")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and RAY_INSTALL_HINT in error
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_local_ray_instance_gives_the_table_of_the_pool(pool_bench, tmp_path, monkeypatch):
+    if importlib.util.find_spec("ray") is None:  # not imported here: --ray auto sets Ray's switch before it is
+        pytest.skip("Ray is an optional extra (pip install -e '.[cluster]'); CI installs it")
+    monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "1")  # restored after the test
+    matrix, pool_dir, _ = pool_bench
+    addresses = []
+
+    def on_local_ray(jobs):
+        for row in run_on_ray(jobs, LOCAL_RAY, 2):
+            import ray  # imported by run_on_ray, after it set the switch
+
+            addresses.append(ray.nodes()[0]["NodeManagerAddress"])  # while the instance runs
+            yield row
+
+    assert bench(matrix, tmp_path / "ray", on_local_ray, quiet=True) == 0
+    assert set(addresses) == {LOCAL_HOST}  # the instance serves this machine only
+
+    def comparable(rows):
+        return [{key: value for key, value in row.items() if key not in PLACE_DEPENDENT} for row in rows]
+
+    assert comparable(_rows(tmp_path / "ray")) == comparable(_rows(pool_dir))
+
+
+def test_the_smoke_matrix_runs_on_the_bundled_sequence(tmp_path):
+    """configs/bench/smoke.yaml: fdmo and direct, 2 seeds each, on the 80 bundled teddy frames."""
+    matrix = load_matrix(REPOSITORY / "configs" / "bench" / "smoke.yaml")
+    assert main(["bench", str(REPOSITORY / "configs" / "bench" / "smoke.yaml"), "--workers", "2",
+                 "--out", str(tmp_path), "--quiet"]) == 0
+    rows = _rows(tmp_path)
+    assert [(row["method"], row["seed"]) for row in rows] == [(cell.method, str(cell.seed)) for cell in matrix.cells()]
+    for row in rows:
+        assert row["status"] == OK, row["error"]
+        assert float(row["ate_m"]) < 0.02 and float(row["tracked_fraction"]) > 0.9
+        assert json.loads((Path(row["folder"]) / "metrics.json").read_text())["method"] == row["method"]
