@@ -1,7 +1,7 @@
 """The command line: ``fdmo run | eval | info | plot | vocabulary | experiment | bench``.
 
     fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
-             [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...] [--gt FILE]
+             [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...] [--gt FILE] [--realtime]
              [--rrd FILE | --no-rrd] [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
@@ -30,6 +30,7 @@ from collections.abc import Iterator, Sequence as SequenceOf
 from pathlib import Path
 from typing import Any, NoReturn
 
+from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from vo_core.config import METHODS, Config, load_config
 from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
@@ -46,7 +47,6 @@ DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
-REAL_TIME = 1.0  # the player's speed with --viser: the sequence's frame rate, from its timestamps
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -109,6 +109,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--jump", dest="jumps", type=_jump, action="append", default=[], metavar="FRAME:TARGET",
                      help="after frame FRAME, go on from frame TARGET: back (frames played again) or ahead; "
                           "once per run (repeatable)")
+    run.add_argument("--realtime", action="store_true",
+                     help="frames arrive at their timestamps, as from a camera; those that arrive while the odometry "
+                          "is busy are skipped (and counted), as a live system skips them")
     recording = run.add_mutually_exclusive_group()
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
@@ -190,7 +193,7 @@ def command_run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
     _check_drops_and_jumps(args.drops, args.jumps, sequence.indices)
-    player = Player(sequence, args.drops, args.jumps)
+    player = Player(sequence, args.drops, args.jumps, realtime=args.realtime)
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
     try:
         summary = _until_signalled(player, lambda: run_sequence(
@@ -322,6 +325,8 @@ def _incidents(metrics: dict[str, Any]) -> list[str]:
     counts = [
         (metrics["skipped_frames"], "unreadable frame skipped", "unreadable frames skipped"),
         (metrics["dropped_frames"], "frame dropped", "frames dropped"),
+        (metrics["late_frames"], "frame skipped in real time (it arrived while the odometry was busy)",
+         "frames skipped in real time (they arrived while the odometry was busy)"),
         (len(metrics["jumps"]), f"jump ({_jumps(metrics['jumps'])})", f"jumps ({_jumps(metrics['jumps'])})"),
         (events[EventKind.TRACKING_FAILED.value], "tracking failure", "tracking failures"),
         (events[EventKind.DIVERGENCE_DETECTED.value], "divergence", "divergences"),

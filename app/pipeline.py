@@ -19,7 +19,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from app.player import Player
+from app.player import REALTIME_SOURCE, Player
 from app.progress import ProgressBar
 from app.sinks.files import FilesSink
 from vo_core.config import Config, DatasetConfig
@@ -249,7 +249,8 @@ class _Statistics:
         self.stage_ms: dict[str, list[float]] = defaultdict(list)
         self.step_ms: list[float] = []  # the whole Odometry.track call, sinks included
         self.events: Counter[str] = Counter()
-        self.dropped = 0
+        self.dropped = 0  # on purpose: --drop, the page's button
+        self.late = 0  # --realtime: arrived while the odometry was busy
         self.jumps: list[dict[str, Any]] = []
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
@@ -267,7 +268,9 @@ class _Statistics:
         self.keyframes += event.kind is EventKind.KEYFRAME_ADDED
         if event.kind is EventKind.INITIALIZATION_SUCCEEDED and self.initialization_frame is None:
             self.initialization_frame = event.frame_index
-        if event.kind is EventKind.FRAMES_DROPPED:
+        if event.kind is EventKind.FRAMES_DROPPED and event.details.get("source") == REALTIME_SOURCE:
+            self.late += int(event.details["count"])
+        elif event.kind is EventKind.FRAMES_DROPPED:
             self.dropped += int(event.details["count"])
         if event.kind is EventKind.FRAMES_JUMPED:
             self.jumps.append({key: event.details[key] for key in ("from_frame", "to_frame")})
@@ -286,6 +289,7 @@ class _Statistics:
             "keyframes": self.keyframes,
             "skipped_frames": self.events[EventKind.FRAME_SKIPPED.value],
             "dropped_frames": self.dropped,
+            "late_frames": self.late,
             "jumps": self.jumps,
             "initialization_frame": self.initialization_frame,
             "events": dict(sorted(self.events.items())),

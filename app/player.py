@@ -15,10 +15,17 @@ A scripted drop (``--drop FRAME:COUNT``) is requested when the player reaches FR
 (``--jump FRAME:TARGET``) once FRAME has been handed out; each fires once per pass (a replay does not fire it
 again). A click on the page's "drop" or "jump back" button requests the same moves, so experiments and the
 browser do the same thing. Each move is announced as an event: FRAMES_DROPPED or FRAMES_JUMPED.
+
+Real time (``--realtime``) plays the sequence as a camera delivers it: frame i arrives at its timestamp (over
+``speed``) after the first, whether or not the odometry is ready. The player hands out the newest frame that has
+arrived and drops the older ones the odometry was too busy to take, announced as FRAMES_DROPPED with source
+"realtime" (a live system skips them the same way); a frame not yet arrived is waited for. The camera's clock is
+never re-anchored for a slow odometry, only after a pause or a move (a restart of the camera, in effect).
 """
 
 from __future__ import annotations
 
+import bisect
 import threading
 import time
 from collections import deque
@@ -30,6 +37,8 @@ from vo_core.events import Event, EventKind
 
 # Waits wake at least this often so that Ctrl-C (KeyboardInterrupt) is handled promptly in the main thread.
 WAIT_SLICE_S = 0.2
+REAL_TIME = 1.0  # speed: the sequence's own frame rate, from its timestamps
+REALTIME_SOURCE = "realtime"  # the source of the drops of frames that arrived while the odometry was busy
 
 
 @dataclass(frozen=True)
@@ -55,8 +64,10 @@ class Player:
     over: ``wait_for_restart()`` returns True and the next ``play()`` begins at the first frame).
     """
 
-    def __init__(self, sequence, drops: Iterable[tuple[int, int]] = (), jumps: Iterable[tuple[int, int]] = ()):
+    def __init__(self, sequence, drops: Iterable[tuple[int, int]] = (), jumps: Iterable[tuple[int, int]] = (),
+                 realtime: bool = False):
         self.sequence = sequence
+        self.realtime = realtime  # frames arrive at their timestamps; those the odometry misses are dropped
         self.drops = _pairs(drops, "a drop needs a frame index >= 0 and a count >= 1", minimum=(0, 1))
         self.jumps = _pairs(jumps, "a jump needs a frame index >= 0 and a target >= 0", minimum=(0, 0))
         self._indices = [int(index) for index in sequence.indices]
@@ -65,7 +76,7 @@ class Player:
         self._condition = threading.Condition()
         self._paused = False
         self._steps = 0  # frames allowed through while paused
-        self._speed = 0.0
+        self._speed = REAL_TIME if realtime else 0.0
         self._moves: deque[_Move] = deque()
         self._restart_requested = False
         self._stopped = False
@@ -221,6 +232,8 @@ class Player:
                 if not self._wait_until_frame_may_pass():
                     return
                 cursor = self._move(cursor, last, script, on_event)
+                if self.realtime:
+                    cursor = self._skip_missed(cursor, last, on_event)
                 if cursor >= len(self._indices):
                     with self._condition:
                         self._finished = True
@@ -253,6 +266,22 @@ class Player:
                 on_event(self._announcement(move, cursor, last, target))
             cursor = target
             script.reached(self._frame_at(cursor), self)
+
+    def _skip_missed(self, cursor: int, last: int, on_event) -> int:
+        """Real time: the position of the newest frame that has arrived by now (frames at the cursor and after it
+        whose timestamps have passed on the camera's clock); the older ones are dropped, and announced."""
+        with self._condition:
+            anchor, speed = self._pace_anchor, self._speed
+            if anchor is None or speed <= 0.0 or self._paused or cursor >= len(self._indices):
+                return cursor
+            camera_time = anchor[1] + (time.monotonic() - anchor[0]) * speed
+        newest = min(bisect.bisect_right(self._timestamps, camera_time, lo=cursor) - 1, len(self._indices) - 1)
+        if newest <= cursor:
+            return cursor
+        if on_event is not None:
+            on_event(self._announcement(_Move(EventKind.FRAMES_DROPPED, REALTIME_SOURCE, count=newest - cursor),
+                                        cursor, last, newest))
+        return newest
 
     def _frame_at(self, position: int) -> int | None:
         return self._indices[position] if position < len(self._indices) else None
@@ -298,8 +327,9 @@ class Player:
             while now < due and not self._changed_since(anchor_wall):
                 self._condition.wait(min(due - now, WAIT_SLICE_S))
                 now = time.monotonic()
-            if now > due:
-                # Tracking was slower than real time: re-anchor instead of rushing the next frames.
+            if now > due and not self.realtime:
+                # Tracking was slower than real time: re-anchor instead of rushing the next frames (in real time
+                # the camera does not wait: _skip_missed drops the frames it delivered meanwhile).
                 self._pace_anchor = (now, timestamp)
 
     def _changed_since(self, anchor_wall: float) -> bool:

@@ -175,6 +175,22 @@ def test_dropped_frames_never_reach_the_odometry_and_an_event_says_so(dataset, t
     assert json.loads((out / "metrics.json").read_text())["dropped_frames"] == 4
 
 
+def test_realtime_with_a_slow_tracker_skips_frames_and_says_how_many(dataset, tmp_path, scripted, capsys):
+    """Frames every 0.1 s, a tracker taking 0.25 s a frame: about 3 frames in 5 arrive while it is busy."""
+    instances, options = scripted
+    options["at_frame"] = {i: lambda: time.sleep(2.5 * VAMR_INTERVAL_S) for i in range(FRAMES)}
+    out = tmp_path / "results"
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--realtime")
+    assert code == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    seen = instances[-1].seen
+    assert metrics["processed_frames"] == len(seen) and metrics["late_frames"] == FRAMES - len(seen)
+    assert 2 <= len(seen) <= FRAMES // 2 and metrics["dropped_frames"] == 0
+    assert f"{FRAMES - len(seen)} frames skipped in real time" in stdout
+    late = [e for e in events_of(out) if e["kind"] == "frames_dropped"]
+    assert {e["details"]["source"] for e in late} == {"realtime"}
+
+
 def test_a_backward_jump_replays_frames_and_the_trajectory_stays_a_valid_tum_file(dataset, tmp_path, scripted,
                                                                                    capsys):
     out = tmp_path / "results"

@@ -132,6 +132,32 @@ def test_speed_paces_frames_at_the_dataset_rate():
     assert time.monotonic() - started >= 0.25 / 2.0 - 0.01
 
 
+def test_realtime_hands_out_the_newest_frame_and_drops_the_frames_missed_meanwhile():
+    """A tracker 3 frame intervals slow sees about one frame in 3; every other frame is dropped as late, none is
+    read, and the camera's clock never waits for the tracker (the run takes the sequence's own time)."""
+    sequence = frames(30)  # 1.5 s at 20 Hz
+    player = Player(sequence, realtime=True)
+    seen, events = [], []
+    started = time.monotonic()
+    for frame in player.play(on_event=events.append):
+        seen.append(frame.index)
+        time.sleep(3 / RATE_HZ)
+    elapsed = time.monotonic() - started
+    late = [event for event in events if event.kind is EventKind.FRAMES_DROPPED]
+    assert all(event.details["source"] == "realtime" for event in late)
+    assert len(seen) + sum(event.details["count"] for event in late) == 30
+    assert 30 / 4 <= len(seen) <= 30 / 2.5 and seen == sorted(seen) and seen[0] == 0
+    assert sequence.reads == seen  # frames dropped are never read
+    assert elapsed < 1.5 + 4 / RATE_HZ  # the length of the sequence, plus the last frame's tracking
+
+
+def test_realtime_with_a_fast_tracker_drops_nothing_and_keeps_the_frame_rate():
+    started = time.monotonic()
+    seen, events = play_all(Player(frames(10), realtime=True))  # 0.45 s between the first and the last frame
+    assert seen == list(range(10)) and events == []
+    assert time.monotonic() - started >= 9 / RATE_HZ - 0.01
+
+
 def test_speed_must_not_be_negative():
     with pytest.raises(ValueError, match="speed"):
         Player(frames(1)).speed = -1.0

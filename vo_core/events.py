@@ -45,7 +45,7 @@ class EventKind(str, Enum):
     WINDOW_OPTIMIZED = "window_optimized"
     FRAME_SKIPPED = "frame_skipped"  # unreadable image skipped by the loader
     FRAME_REPEATED = "frame_repeated"  # the same image as the frame before (a stalled camera): no pose
-    FRAMES_DROPPED = "frames_dropped"  # dropped on purpose by the player (scripted or live)
+    FRAMES_DROPPED = "frames_dropped"  # by the player: on purpose (scripted or live), or late (source "realtime")
     FRAMES_JUMPED = "frames_jumped"  # the player went on from another frame, back or ahead (scripted or live)
 
 
