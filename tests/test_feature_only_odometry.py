@@ -5,11 +5,11 @@ local bundle adjustment against the dense one."""
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
+from bundle_adjustment_window import CAMERA as BA_CAMERA
+from bundle_adjustment_window import make_window
 
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
@@ -18,10 +18,6 @@ from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, adjust_
 from vo_core.synthetic import make_sequence
 from vo_core.system import IMPLEMENTED_METHODS, Odometry
 from vo_core.trajectory import Trajectory
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_geometry_bundle_adjustment import CAMERA as BA_CAMERA  # noqa: E402
-from test_geometry_bundle_adjustment import make_window  # noqa: E402
 
 WIDTH, HEIGHT = 320, 240
 

@@ -146,9 +146,15 @@ class TrackingConfig:
     max_local_keyframes: int = 80  # ORB-SLAM2 UpdateLocalKeyFrames: at most 80 local keyframes
     min_local_map_inliers: int = 30  # ORB-SLAM2 TrackLocalMap: 30 inliers ...
     min_local_map_inliers_relocalized: int = 50  # ... 50 within mMaxFrames of a relocalization
-    # ORB-SLAM2 mMaxFrames = fps: a keyframe at the latest this many frames after the last (and no keyframe this
-    # soon after a relocalization); 30 for the synthetic and TUM sequences' 30 Hz.
-    max_frames_between_keyframes: int = 30
+    # ORB-SLAM2 mMaxFrames = fps, one second of frames: within it of a relocalization no keyframe (once the map has
+    # more keyframes than it has frames) and the local map needs the stricter inlier count. Counted in frames at
+    # the camera's rate, which the odometry reads off the timestamps.
+    relocalization_grace_s: float = 1.0
+    # ORB-SLAM2 takes a keyframe only while its local mapping thread is idle (NeedNewKeyFrame, monocular: c1b, and
+    # not accepted while busy); its local mapping, run at camera rate, is busy for a while after each keyframe.
+    # Ours runs to the end between two frames, so this stands for that while: no keyframe sooner after the last
+    # (ours: 0 made nearly every frame a keyframe on teddy, 55 of 58, at 1 fps; see issue 19's benchmarks).
+    local_mapping_busy_s: float = 0.2
     reference_ratio_keyframe: float = 0.9  # ORB-SLAM2 NeedNewKeyFrame: thRefRatio = 0.9 (monocular) ...
     reference_ratio_two_keyframes: float = 0.4  # ... 0.4 while the map has a single keyframe
     min_inliers_for_keyframe: int = 15  # ORB-SLAM2 NeedNewKeyFrame c2: mnMatchesInliers > 15

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import sparse
 
 from vo_core.features.config import OrbConfig
 from vo_core.features.matcher import hamming_within
@@ -186,13 +187,13 @@ class FeatureMap:
 
     def observations(self, frame_indices=None) -> Observations:
         keyframes = [self.keyframes[i] for i in (self.keyframes if frame_indices is None else frame_indices)]
-        parts = [(np.full(len(k.observed()), k.frame_index), k.observed()) for k in keyframes]
-        if not parts:
+        if not keyframes:
             empty = np.zeros(0, np.int64)
             return Observations(empty, empty, empty)
-        keyframe = np.concatenate([p[0] for p in parts]).astype(np.int64)
-        feature = np.concatenate([p[1] for p in parts]).astype(np.int64)
-        point = np.concatenate([k.point_ids[k.observed()] for k in keyframes])
+        observed = [k.observed() for k in keyframes]
+        keyframe = np.repeat([k.frame_index for k in keyframes], [len(o) for o in observed]).astype(np.int64)
+        feature = np.concatenate(observed).astype(np.int64)
+        point = np.concatenate([k.point_ids[o] for k, o in zip(keyframes, observed)])
         return Observations(keyframe, feature, point)
 
     def pixels_of(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -229,9 +230,11 @@ class FeatureMap:
 
     def covisible_keyframes(self, frame_index: int, min_weight: int, limit: int | None = None) -> list[int]:
         """Neighbours in the covisibility graph, most shared points first (ORB-SLAM2 GetBestCovisibilityKeyFrames)."""
-        weights = self.covisibility(frame_index)
-        ranked = sorted((k for k, w in weights.items() if w >= min_weight), key=lambda k: (-weights[k], -k))
-        return ranked[:limit]
+        return best_covisible(self.covisibility(frame_index), min_weight, limit)
+
+    def covisibility_graph(self) -> "Covisibility":
+        """The whole graph and every point's observation count at once, for many questions between two changes."""
+        return Covisibility(self, self.observations())
 
     def points_of(self, frame_indices) -> np.ndarray:
         """Ids of the live points observed by any of the keyframes."""
@@ -317,6 +320,42 @@ class FeatureMap:
             mine = keyframe_of == frame_index
             descriptors[mine] = self.keyframes[int(frame_index)].features.descriptors[feature_of[mine]]
         return descriptors
+
+
+def best_covisible(weights: dict[int, int], min_weight: int, limit: int | None) -> list[int]:
+    """The keyframes of at least ``min_weight`` shared points, most first, the newest first among equals."""
+    ranked = sorted((k for k, w in weights.items() if w >= min_weight), key=lambda k: (-weights[k], -k))
+    return ranked[:limit]
+
+
+class Covisibility:
+    """A map's covisibility graph and observation counts at one moment, from one pass over its observations: what
+    FeatureMap.covisibility and observation_counts say, for the many keyframes and points asked about between two
+    changes of the map (tracking asks for each local keyframe's neighbours at every frame). Built again after a
+    change: it does not follow the map."""
+
+    def __init__(self, feature_map: FeatureMap, table: Observations):
+        self.table = table
+        self.frames = np.array(list(feature_map.keyframes), np.int64)
+        row_of = {frame_index: row for row, frame_index in enumerate(self.frames)}
+        rows = np.array([row_of[k] for k in table.keyframe.tolist()], np.int64)
+        shape = (len(self.frames), len(feature_map.points))
+        seen = sparse.csr_matrix((np.ones(len(rows), np.int64), (rows, table.point)), shape=shape)  # duplicates add
+        sees = seen.copy()
+        sees.data[:] = 1
+        # weight (k, l): l's observations of k's points, as FeatureMap.covisibility counts them
+        self.weights = (sees @ seen.T).toarray()
+        np.fill_diagonal(self.weights, 0)
+        self.row_of = row_of
+        self.counts = np.bincount(table.point, minlength=len(feature_map.points))
+
+    def observation_counts(self, point_ids: np.ndarray) -> np.ndarray:
+        return self.counts[np.asarray(point_ids, np.int64)]
+
+    def covisible_keyframes(self, frame_index: int, min_weight: int, limit: int | None = None) -> list[int]:
+        weights = self.weights[self.row_of[frame_index]]
+        shared = np.flatnonzero(weights)
+        return best_covisible(dict(zip(self.frames[shared].tolist(), weights[shared].tolist())), min_weight, limit)
 
 
 @dataclass

@@ -7,7 +7,8 @@ Per frame:
         two keyframes, and local mapping of the second
     tracking: motion model or reference keyframe, then the local map (feature_tracking.py); where tracking
         wants a keyframe, the frame becomes one and local mapping runs on it (local_mapping.py) before the next
-        frame: ORB-SLAM2's two threads, one after the other
+        frame: ORB-SLAM2's two threads, one after the other. ORB-SLAM2 takes keyframes only while local mapping
+        is idle; here, once the camera time its local mapping would have been busy has passed
     lost: no pose; while the map has at most 5 keyframes it starts over (ORB-SLAM2's reset), at the last pose
         and the old map's scene depth as unit; otherwise every frame tries the global relocalization
 
@@ -70,6 +71,10 @@ class FeatureOnlyOdometry:
         self.posed: list[tuple[float, np.ndarray]] = []  # the last two poses (timestamp, T_world_cam): velocity
         self.frames_processed = 0
         self.relocalized_at = -np.inf  # frames_processed at the last relocalization
+        self.keyframed_at = -np.inf  # timestamp of the last keyframe
+        # The camera's frame interval: the shortest seen between two frames (dropped frames only lengthen them).
+        self.frame_period = np.inf
+        self.previous_timestamp = None
         self.T_world_origin = np.eye(4)  # where the next map's first keyframe goes, and its scene depth
         self.origin_depth = 1.0
         self._events: list[Event] = []
@@ -82,6 +87,7 @@ class FeatureOnlyOdometry:
         self._events, self._timings, self._frame = [], {}, frame
         cv2.setRNGSeed(self.seed + frame.index)  # OpenCV's RANSAC (relocalization) draws from its global generator
         start = time.perf_counter()
+        self._clock(frame.timestamp)
         if self.state is State.LOST:
             result = self._relocalize(frame)
         else:
@@ -166,8 +172,7 @@ class FeatureOnlyOdometry:
         self.local_mapper.statistics.count(len(self.map.points), outcome.visible_points, matched)
         last = self.last
         keyframe = None
-        wanted = self.tracker.needs_keyframe(self.map, current, outcome.inliers, self._relocalized_recently())
-        if wanted and current.frame_index not in self.map.keyframes:
+        if self._needs_keyframe(current, outcome.inliers) and current.frame_index not in self.map.keyframes:
             keyframe = self._new_keyframe(current.frame_index, current.timestamp, current.features,
                                           current.T_world_cam, current.point_ids.copy())
             self._map_keyframe(keyframe, current)
@@ -183,9 +188,31 @@ class FeatureOnlyOdometry:
             return None
         return extrapolate(self.posed, timestamp)
 
+    def _needs_keyframe(self, current: TrackedFrame, inliers: int) -> bool:
+        """ORB-SLAM2 NeedNewKeyFrame (monocular): not soon after a relocalization once the map has more keyframes
+        than the grace has frames; otherwise while local mapping is idle and the frame tracks few of its reference
+        keyframe's points (FeatureTracker.tracks_few_reference_points). ORB-SLAM2's other conditions never decide
+        here: with mMinFrames = 0, "mMaxFrames since the last keyframe" only matters where local mapping is busy,
+        and then a monocular keyframe is refused anyway."""
+        tracking = self.config.odometry.tracking
+        if self._relocalized_recently() and len(self.map) > self._frames_in(tracking.relocalization_grace_s):
+            return False
+        mapping_idle = self._frames_in(current.timestamp - self.keyframed_at) >= self._frames_in(
+            tracking.local_mapping_busy_s)
+        return mapping_idle and self.tracker.tracks_few_reference_points(self.map, current, inliers)
+
     def _relocalized_recently(self) -> bool:
-        frames = self.config.odometry.tracking.max_frames_between_keyframes
-        return self.frames_processed < self.relocalized_at + frames
+        grace = self._frames_in(self.config.odometry.tracking.relocalization_grace_s)
+        return self.frames_processed < self.relocalized_at + grace
+
+    def _frames_in(self, seconds: float) -> float:
+        """Frames at the camera's rate in a while (rounded: timestamps are not exact multiples of the period)."""
+        return np.round(seconds / self.frame_period) if np.isfinite(self.frame_period) else 0.0
+
+    def _clock(self, timestamp: float) -> None:
+        if self.previous_timestamp is not None and timestamp > self.previous_timestamp:
+            self.frame_period = min(self.frame_period, timestamp - self.previous_timestamp)
+        self.previous_timestamp = timestamp
 
     def _moved_to(self, current: TrackedFrame) -> None:
         self.posed = (self.posed + [(current.timestamp, current.T_world_cam)])[-2:]
@@ -241,6 +268,7 @@ class FeatureOnlyOdometry:
         renumbering of the points."""
         with self._stage("local_mapping"):
             report = self.local_mapper.process(self.map, keyframe)
+        self.keyframed_at = keyframe.timestamp
         if report.renumbered is not None and self.last is not None:  # the frame takes the keyframe's ids below
             observed = self.last.matched
             self.last.point_ids[observed] = report.renumbered[self.last.point_ids[observed]]

@@ -12,9 +12,8 @@ Per frame, while tracking (``FeatureTracker.track``):
     lost: the global bag-of-words relocalization of vo_core/features/recovery.py, then the local map
                                                                                         Relocalization
 
-``needs_keyframe`` is NeedNewKeyFrame's monocular rule. Local mapping runs between frames, never beside them:
-it is always idle when a keyframe is wanted, so its "idle" conditions hold and only the tracked-points ones
-decide.
+``tracks_few_reference_points`` is NeedNewKeyFrame's tracked-points condition; its timing conditions (local
+mapping idle, a relocalization just before) are the odometry's (feature_only.py), which knows the clock.
 
 The pose-only optimization is vo_core/geometry/pose_only.py (ORB-SLAM2 PoseOptimization); its outliers leave the
 frame's matches.
@@ -27,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vo_core.features.config import FeatureConfig
-from vo_core.features.feature_map import NO_POINT, FeatureMap, project_points
+from vo_core.features.feature_map import NO_POINT, Covisibility, FeatureMap, project_points
 from vo_core.features.matcher import TH_LOW, match_by_bow, orientation_consistent, search_by_projection
 from vo_core.features.recovery import FrameFeatures, RecoveryOutcome, Relocalizer
 from vo_core.geometry.camera import PinholeCamera
@@ -143,7 +142,7 @@ class FeatureTracker:
                        relocalized_recently: bool) -> TrackingOutcome:
         """ORB-SLAM2 TrackLocalMap: local keyframes and points, the points in view searched, the pose optimized."""
         tracking = self.tracking
-        local_keyframes = self.local_keyframes(feature_map, frame)
+        local_keyframes = self.local_keyframes(feature_map.covisibility_graph(), frame)
         frame.reference_keyframe = local_keyframes[0] if local_keyframes else frame.reference_keyframe
         local_points = feature_map.points_of(local_keyframes)
         view = project_points(feature_map.points, np.setdiff1d(local_points, frame.point_ids), frame.T_world_cam,
@@ -202,34 +201,29 @@ class FeatureTracker:
         frame.point_ids[matched[~refined.inlier]] = NO_POINT
         return int(refined.inlier.sum())
 
-    def local_keyframes(self, feature_map: FeatureMap, frame: TrackedFrame) -> list[int]:
+    def local_keyframes(self, graph: Covisibility, frame: TrackedFrame) -> list[int]:
         """ORB-SLAM2 UpdateLocalKeyFrames: the keyframes that see the frame's points, most shared first (the
         first is the frame's reference keyframe), then the best covisible neighbours of each, up to 80."""
         tracking = self.tracking
-        table = feature_map.observations()
+        table = graph.table
         sees = np.isin(table.point, frame.point_ids[frame.matched])
         keyframes, shared = np.unique(table.keyframe[sees], return_counts=True)
         chosen = [int(k) for k in keyframes[np.lexsort((-keyframes, -shared))]]
         for keyframe in list(chosen):
             if len(chosen) >= tracking.max_local_keyframes:
                 break
-            for neighbour in feature_map.covisible_keyframes(keyframe, 1, tracking.neighbours_per_keyframe):
+            for neighbour in graph.covisible_keyframes(keyframe, 1, tracking.neighbours_per_keyframe):
                 if neighbour not in chosen:
                     chosen.append(neighbour)
                     break  # ORB-SLAM2 takes the first neighbour not yet chosen
         return chosen[:tracking.max_local_keyframes]
 
-    def needs_keyframe(self, feature_map: FeatureMap, frame: TrackedFrame, inliers: int,
-                       relocalized_recently: bool) -> bool:
-        """ORB-SLAM2 NeedNewKeyFrame (monocular): never within ``max_frames_between_keyframes`` of a relocalization
-        once the map has more keyframes than that; otherwise where the frame tracks fewer than 90 % of the points its
-        reference keyframe has well observed (40 % while the map has one keyframe), with more than 15 inliers.
-        ORB-SLAM2's other conditions (enough frames since the last keyframe, or local mapping idle) always hold
-        here: local mapping has finished before the next frame comes."""
+    def tracks_few_reference_points(self, feature_map: FeatureMap, frame: TrackedFrame, inliers: int) -> bool:
+        """ORB-SLAM2 NeedNewKeyFrame's c2 (monocular): the frame tracks fewer than 90 % of the points its reference
+        keyframe has well observed (40 % while the map has one keyframe), with more than 15 inliers. When the
+        keyframe is taken (local mapping idle, no relocalization just before) is feature_only.py's."""
         tracking = self.tracking
         keyframes = len(feature_map)
-        if relocalized_recently and keyframes > tracking.max_frames_between_keyframes:
-            return False
         reference = feature_map.keyframes.get(frame.reference_keyframe) or feature_map.newest()
         min_observations = tracking.min_observations if keyframes > 2 else tracking.min_observations_two_keyframes
         points = reference.point_ids[reference.point_ids >= 0]

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_core.features.config import FeatureConfig
-from vo_core.features.feature_map import NO_POINT, FeatureKeyframe, FeatureMap
+from vo_core.features.feature_map import NO_POINT, Covisibility, FeatureKeyframe, FeatureMap
 from vo_core.features.mapping import FeatureMapper
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
@@ -147,7 +147,8 @@ class LocalMapper:
         """ORB-SLAM2 CreateNewMapPoints: epipolar matches of unmatched features with each of the best covisible
         keyframes far enough away, triangulated and checked (FeatureMapper.triangulate_pair)."""
         matches, point_ids = [np.zeros((0, 4))], [np.zeros(0, np.int64)]
-        for neighbour in self.neighbours(feature_map, keyframe, self.local.triangulation_neighbours):
+        graph = feature_map.covisibility_graph()
+        for neighbour in self.neighbours(graph, keyframe, self.local.triangulation_neighbours):
             other = feature_map.keyframes[neighbour]
             baseline = np.linalg.norm(keyframe.centre - other.centre)
             depth = self.median_depth(feature_map, other)
@@ -163,8 +164,9 @@ class LocalMapper:
     def search_in_neighbours(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, new_points: np.ndarray) -> int:
         """ORB-SLAM2 SearchInNeighbors, without merging duplicates: the keyframe's new points searched in its
         neighbours (and theirs), the neighbours' points searched among the keyframe's unmatched features."""
-        first = self.neighbours(feature_map, keyframe, self.local.fuse_neighbours)
-        second = [k for n in first for k in feature_map.covisible_keyframes(n, 1, 5) if k != keyframe.frame_index]
+        graph = feature_map.covisibility_graph()
+        first = self.neighbours(graph, keyframe, self.local.fuse_neighbours)
+        second = [k for n in first for k in graph.covisible_keyframes(n, 1, 5) if k != keyframe.frame_index]
         targets = [feature_map.keyframes[k] for k in dict.fromkeys(first + second)]
         fused = self.mapper.fuse(feature_map, new_points, targets)
         unseen = np.setdiff1d(feature_map.points_of([k.frame_index for k in targets]), keyframe.point_ids)
@@ -181,9 +183,10 @@ class LocalMapper:
         """ORB-SLAM2 Optimizer::LocalBundleAdjustment: the keyframe and its covisible keyframes free (the map's
         first keyframe always held), their points free, the other keyframes that see those points held; level
         weights and Huber at sqrt(5.991); 5 iterations, the outliers out, 10 more; outlier observations leave."""
-        local = [keyframe.frame_index, *feature_map.covisible_keyframes(keyframe.frame_index, 1)]
+        graph = feature_map.covisibility_graph()
+        local = [keyframe.frame_index, *graph.covisible_keyframes(keyframe.frame_index, 1)]
         points = feature_map.points_of(local)
-        table = feature_map.observations()
+        table = graph.table
         keep = np.isin(table.point, points)
         observer, feature, point = table.keyframe[keep], table.feature[keep], table.point[keep]
         observers = list(dict.fromkeys([*local, *np.unique(observer).tolist()]))
@@ -236,17 +239,19 @@ class LocalMapper:
         local = self.local
         origin = min(feature_map.keyframes.values(), key=lambda k: k.keyframe_id).frame_index
         culled = []
-        for frame_index in feature_map.covisible_keyframes(keyframe.frame_index, 1):
+        graph = feature_map.covisibility_graph()
+        for frame_index in graph.covisible_keyframes(keyframe.frame_index, 1):
             if frame_index == origin:
                 continue
             candidate = feature_map.keyframes[frame_index]
             points = candidate.point_ids[candidate.observed()]
             if len(points) == 0:
                 continue
-            others = feature_map.observation_counts(points) - 1
+            others = graph.observation_counts(points) - 1
             if np.mean(others >= local.redundant_observers) > local.redundancy:
                 feature_map.remove_keyframe(frame_index)
                 culled.append(frame_index)
+                graph = feature_map.covisibility_graph()  # the culled keyframe's views are gone
         return culled
 
     def compact(self, feature_map: FeatureMap) -> np.ndarray | None:
@@ -267,11 +272,11 @@ class LocalMapper:
 
     # ------------------------------------------------------------------------------------ helpers
 
-    def neighbours(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, count: int) -> list[int]:
+    def neighbours(self, graph: Covisibility, keyframe: FeatureKeyframe, count: int) -> list[int]:
         """ORB-SLAM2 GetBestCovisibilityKeyFrames: the neighbours sharing at least 15 points, most first; the
         best one alone where none does."""
-        neighbours = feature_map.covisible_keyframes(keyframe.frame_index, self.local.min_covisibility, count)
-        return neighbours or feature_map.covisible_keyframes(keyframe.frame_index, 1, 1)
+        neighbours = graph.covisible_keyframes(keyframe.frame_index, self.local.min_covisibility, count)
+        return neighbours or graph.covisible_keyframes(keyframe.frame_index, 1, 1)
 
     @staticmethod
     def median_depth(feature_map: FeatureMap, keyframe: FeatureKeyframe) -> float:
