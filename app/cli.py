@@ -193,6 +193,8 @@ def command_run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
     _check_drops_and_jumps(args.drops, args.jumps, sequence.indices)
+    if args.realtime:
+        _warm_up(config, sequence.camera, args.quiet)
     player = Player(sequence, args.drops, args.jumps, realtime=args.realtime)
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
     try:
@@ -208,6 +210,19 @@ def command_run(args: argparse.Namespace) -> int:
         print(f"fdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
         return EXIT_OK if args.viser else EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def _warm_up(config: Config, camera, quiet: bool) -> None:
+    """Before a real-time run's camera starts: the first-use costs (seconds) would otherwise skip its first
+    frames (app.pipeline.warm_up)."""
+    from app.pipeline import warm_up
+
+    if not quiet:
+        print("fdmo: getting ready (a short synthetic run loads the compiled kernels) before the camera starts",
+              file=sys.stderr)
+    seconds = warm_up(config, camera)
+    if not quiet:
+        print(f"fdmo: ready after {seconds:.1f} s", file=sys.stderr)
 
 
 def _sinks(args: argparse.Namespace, sequence, player, out_dir: Path) -> list:

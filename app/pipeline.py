@@ -32,7 +32,10 @@ from vo_core.trajectory import Trajectory
 
 SYNTHETIC = "synthetic"  # source synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] (open_source)
 SYNTHETIC_SIZE = (640, 480)
-MIN_POSES_TO_EVALUATE = 3  # a Sim(3) alignment needs three non-collinear positions
+MIN_POSES_TO_EVALUATE = 3
+# warm_up: long enough for an initialization, a full window of keyframes and its first marginalization (a direct
+# keyframe every 2-3 frames of this preset, 7 in the window).
+WARM_UP_PRESET, WARM_UP_FRAMES = "smooth", 30  # a Sim(3) alignment needs three non-collinear positions
 
 # How a pass ended, as metrics.json reports it.
 COMPLETED = "completed"  # the end of the sequence was reached
@@ -107,6 +110,24 @@ def open_source(source: str | Path, dataset: DatasetConfig, layout: str | None =
         raise InputError(f"{source}: expected synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]") from None
     sequence = make_sequence(preset, num_frames, width=width, height=height)
     return sequence.cut(start, end) if start is not None or end is not None else sequence
+
+
+def warm_up(config: Config, camera, num_frames: int = WARM_UP_FRAMES) -> float:
+    """Run ``config.method`` over a short synthetic sequence at the camera's image size and throw it away: what
+    the first frames, the first keyframes and the first window marginalization load once per process (the
+    compiled kernels from numba's cache, numba's typed lists, OpenCV's first calls) is loaded before a live run
+    starts, as a live system gets ready before it opens the camera. Returns the seconds it took."""
+    from vo_core.synthetic import make_sequence
+
+    started = time.perf_counter()
+    sequence = make_sequence(WARM_UP_PRESET, num_frames, width=camera.width, height=camera.height)
+    odometry = Odometry(config, sequence.camera)
+    try:
+        for frame in sequence:
+            odometry.track(frame)
+    finally:
+        odometry.close()
+    return time.perf_counter() - started
 
 
 def check_method(config: Config, camera) -> None:

@@ -180,8 +180,9 @@ def test_realtime_with_a_slow_tracker_skips_frames_and_says_how_many(dataset, tm
     instances, options = scripted
     options["at_frame"] = {i: lambda: time.sleep(2.5 * VAMR_INTERVAL_S) for i in range(FRAMES)}
     out = tmp_path / "results"
-    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--realtime")
-    assert code == 0
+    code, stdout, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--realtime")
+    assert code == 0 and "ready after" in stderr  # a synthetic warm-up ran before the camera started
+    assert len(instances) == 3  # the method checked, warmed up on a synthetic sequence, then run
     metrics = json.loads((out / "metrics.json").read_text())
     seen = instances[-1].seen
     assert metrics["processed_frames"] == len(seen) and metrics["late_frames"] == FRAMES - len(seen)
