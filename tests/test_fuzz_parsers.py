@@ -18,6 +18,8 @@ import yaml
 from hypothesis import given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 
+from app.bench.cell import command
+from app.bench.matrix import load_matrix
 from app.cli import build_parser
 from vo_core.config import load_config
 from vo_core.datasets import open_sequence
@@ -299,3 +301,35 @@ def test_vocabulary_file(folder, content):
     vocabulary = parses_or_refuses(Vocabulary.load, folder / "vocabulary.npz")
     if vocabulary is not None:  # a file that loads describes a tree the descent can use
         vocabulary.transform(np.zeros((2, 32), np.uint8))
+
+
+MATRIX = """sequences:
+  - synthetic:smooth:30
+  - {path: data/kitti, name: kitti, format: kitti, gt: gt.txt}
+methods: [fdmo, klt]
+seeds: [0, 1]
+settings: {default: {}, coarse: {direct.initializer: coarse}}
+tasks: [run, {task: frame-drop, name: drop, args: [--at, '10']}]
+timeout_s: 60
+"""
+MATRIX_KEYS = st.sampled_from(["sequences", "methods", "seeds", "settings", "tasks", "timeout_s", "path", "name",
+                               "format", "camera", "gt", "start", "end", "task", "args", "default", "run"])
+MATRIX_VALUES = st.recursive(
+    st.one_of(YAML_SCALARS, st.sampled_from(["fdmo", "klt", "run", "two-loop", "frame-drop", "bundled", "a/b",
+                                             "synthetic:smooth", "x=1"])),
+    lambda inner: st.lists(inner, max_size=5) | st.dictionaries(MATRIX_KEYS, inner, max_size=4), max_leaves=20)
+
+
+@FUZZ
+@given(content=st.one_of(st.dictionaries(MATRIX_KEYS, MATRIX_VALUES, max_size=6).map(lambda d: yaml.safe_dump(d)
+                                                                                    .encode()),
+                         text_files(MATRIX)))
+def test_bench_matrix(folder, content):
+    """fdmo bench's matrix: a matrix whose every cell has a command line, or InputError."""
+    path = folder / "matrix.yaml"
+    path.write_bytes(content)
+    matrix = parses_or_refuses(load_matrix, path)
+    if matrix is not None:
+        for cell in matrix.cells()[:50]:
+            assert command(cell, folder / "cell")[:3][1:] == ["-m", "app"]
+

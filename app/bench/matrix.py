@@ -98,6 +98,8 @@ def load_matrix(path: Path) -> Matrix:
         document = yaml.safe_load(path.read_text())
     except OSError as error:
         raise InputError(f"{path}: cannot read the matrix ({error.strerror or error})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file (the matrix is YAML)") from None
     except yaml.YAMLError as error:
         raise InputError(f"{path}: not valid YAML ({_one_line(error)})") from None
     return parse_matrix(document, str(path))
@@ -118,6 +120,11 @@ def parse_matrix(document: Any, origin: str) -> Matrix:
                                                                                      ["run"]))]
     _unique([sequence.name for sequence in sequences], f"{origin}: sequences")
     _unique([task.name for task in tasks], f"{origin}: tasks")
+    cut = next((sequence for sequence in sequences if sequence.start is not None or sequence.end is not None), None)
+    experiment = next((task for task in tasks if task.task != "run"), None)
+    if cut is not None and experiment is not None:
+        raise InputError(f"{origin}: sequence {cut.name} has a start or an end, which only the task run takes "
+                         f"(not {experiment.task})")
     return Matrix(
         sequences=sequences,
         methods=_methods(_list(document, "methods", origin), origin),
