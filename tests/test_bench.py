@@ -60,11 +60,11 @@ def pool_bench(tmp_path_factory):
 def test_the_matrix_lists_every_cell_with_its_command(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     matrix = parse_matrix({
-        "sequences": [SYNTHETIC, {"path": "data/kitti", "name": "kitti", "format": "kitti", "end": 50}],
+        "sequences": [SYNTHETIC, {"path": "data/kitti", "name": "kitti", "format": "kitti", "camera": "k.yaml"}],
         "methods": ["fdmo", "direct"],
         "seeds": [0, 1, 2],
         "settings": {"default": {}, "coarse": {"direct.initializer": "coarse", "fdmo.divergence.epsilon": 0.2}},
-        "tasks": ["run", {"task": "frame-drop", "name": "drop-100", "args": ["--at", 100]}],
+        "tasks": ["run", {"task": "two-loop", "name": "loops"}],
     }, "m.yaml")
     cells = matrix.cells()
     assert len(cells) == 2 * 2 * 3 * 2 * 2
@@ -75,12 +75,20 @@ def test_the_matrix_lists_every_cell_with_its_command(tmp_path, monkeypatch):
     argv = command(kitti, tmp_path / "cell", python="python")
     assert argv[:5] == ["python", "-m", "app", "run", str(tmp_path / "data" / "kitti")]
     text = " ".join(argv)
-    for part in ("--method fdmo", "--no-rrd", "--end 50", "--format kitti", "--set direct.initializer=coarse",
-                 "--set fdmo.divergence.epsilon=0.2", "--set seed=2", f"--out {tmp_path / 'cell'}"):
+    for part in ("--method fdmo", "--no-rrd", "--format kitti", f"--camera {tmp_path / 'k.yaml'}",
+                 "--set direct.initializer=coarse", "--set fdmo.divergence.epsilon=0.2", "--set seed=2",
+                 f"--out {tmp_path / 'cell'}"):
         assert part in text
-    drop = next(cell for cell in cells if cell.task.name == "drop-100" and cell.sequence.name != "kitti")
-    assert command(drop, tmp_path, python="python")[3:7] == ["experiment", "frame-drop", SYNTHETIC, "--methods"]
-    assert command(drop, tmp_path, python="python")[-2:] == ["--at", "100"]
+    loops = next(cell for cell in cells if cell.task.name == "loops" and cell.sequence.name != "kitti")
+    assert command(loops, tmp_path, python="python")[3:7] == ["experiment", "two-loop", SYNTHETIC, "--methods"]
+
+
+def test_a_cut_sequence_runs_with_its_start_and_end_and_a_task_its_own_options(tmp_path):
+    matrix = parse_matrix({"sequences": [{"path": SYNTHETIC, "start": 5, "end": 50}], "methods": ["klt"]}, "m.yaml")
+    assert " --start 5 --end 50 " in " ".join(command(matrix.cells()[0], tmp_path)) + " "
+    matrix = parse_matrix({"sequences": [SYNTHETIC], "methods": ["klt"],
+                           "tasks": [{"task": "frame-drop", "name": "drop-100", "args": ["--at", 100]}]}, "m.yaml")
+    assert command(matrix.cells()[0], tmp_path)[-2:] == ["--at", "100"]
 
 
 def test_the_bundled_sequence_is_named_by_a_word():
@@ -98,6 +106,7 @@ def test_the_bundled_sequence_is_named_by_a_word():
     ("sequences: [a]\nmethods: [fdmo]\ntimeout_s: -1", "timeout_s: expected a positive number"),
     ("sequences: [a]\nmethods: [fdmo]\nsettings: {x: 3}", "settings.x: expected a mapping"),
     ("sequences: [a]\nmethods: [fdmo]\nworkers: 3", "unknown key 'workers'"),
+    ("sequences: [{path: a, end: 9}]\nmethods: [fdmo]\ntasks: [two-loop]", "only the task run takes"),
     ("sequences: [a\nmethods: [fdmo]", "not valid YAML"),
 ])
 def test_a_malformed_matrix_is_refused_naming_the_file(tmp_path, text, message):
