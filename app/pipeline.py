@@ -32,10 +32,10 @@ from vo_core.trajectory import Trajectory
 
 SYNTHETIC = "synthetic"  # source synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] (open_source)
 SYNTHETIC_SIZE = (640, 480)
-MIN_POSES_TO_EVALUATE = 3
+MIN_POSES_TO_EVALUATE = 3  # a Sim(3) alignment needs three non-collinear positions
 # warm_up: long enough for an initialization, a full window of keyframes and its first marginalization (a direct
 # keyframe every 2-3 frames of this preset, 7 in the window).
-WARM_UP_PRESET, WARM_UP_FRAMES = "smooth", 30  # a Sim(3) alignment needs three non-collinear positions
+WARM_UP_PRESET, WARM_UP_FRAMES = "smooth", 30
 
 # How a pass ended, as metrics.json reports it.
 COMPLETED = "completed"  # the end of the sequence was reached
@@ -121,13 +121,18 @@ def warm_up(config: Config, camera, num_frames: int = WARM_UP_FRAMES) -> float:
 
     started = time.perf_counter()
     sequence = make_sequence(WARM_UP_PRESET, num_frames, width=camera.width, height=camera.height)
-    odometry = Odometry(config, sequence.camera)
+    track(config, sequence.camera, sequence)
+    return time.perf_counter() - started
+
+
+def track(config: Config, camera, frames: Iterable) -> list[FrameResult]:
+    """A fresh odometry fed ``frames`` in order, without sinks (the experiments, the warm-up); frames the loader
+    could not read are skipped, as ``fdmo run`` skips them."""
+    odometry = Odometry(config, camera)
     try:
-        for frame in sequence:
-            odometry.track(frame)
+        return [odometry.track(frame) for frame in frames if frame.image is not None]
     finally:
         odometry.close()
-    return time.perf_counter() - started
 
 
 def check_method(config: Config, camera) -> None:

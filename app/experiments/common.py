@@ -27,7 +27,7 @@ from vo_core.config import Config, DatasetConfig, dump_config, load_config
 from vo_core.errors import InputError
 from vo_core.eval import DEFAULT_MAX_DT_S, associate_timestamps
 from vo_core.events import EventKind, FrameResult
-from vo_core.system import IMPLEMENTED_METHODS, Odometry
+from vo_core.system import IMPLEMENTED_METHODS
 
 DEFAULT_METHODS = ("fdmo", "direct", "klt")
 RESULTS_ROOT = Path("results")
@@ -119,16 +119,6 @@ def relabelled(frame, index: int, timestamp: float):
     """The frame under another number and time: the odometry keys keyframes by frame number, and frames played
     again or after a jump must not reuse the numbers and times of frames it has already seen."""
     return dataclasses.replace(frame, index=index, timestamp=timestamp)
-
-
-def track(config: Config, camera, frames: Iterable) -> list[FrameResult]:
-    """A fresh odometry fed ``frames`` in order; frames the loader could not read are skipped, as ``fdmo run``
-    skips them."""
-    odometry = Odometry(config, camera)
-    try:
-        return [odometry.track(frame) for frame in frames if frame.image is not None]
-    finally:
-        odometry.close()
 
 
 def count_events(results: Iterable[FrameResult]) -> dict[str, int]:

@@ -55,10 +55,10 @@ from app.experiments.common import (
     markdown_table,
     relabelled,
     set_up,
-    track,
     truth_at_frames,
     write_csv,
 )
+from app.pipeline import track
 from vo_core.errors import InputError
 from vo_core.eval import fit_alignment, frame_drop_error
 from vo_core.events import EventKind, FrameResult

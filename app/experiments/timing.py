@@ -27,7 +27,8 @@ import argparse
 
 import numpy as np
 
-from app.experiments.common import finish, markdown_table, set_up, track, write_csv
+from app.experiments.common import finish, markdown_table, set_up, write_csv
+from app.pipeline import track
 from vo_core.events import FrameResult
 from vo_core.system import IMPLEMENTED_METHODS
 

@@ -37,10 +37,10 @@ from app.experiments.common import (
     markdown_table,
     relabelled,
     set_up,
-    track,
     truth_at_frames,
     write_csv,
 )
+from app.pipeline import track
 from vo_core.errors import InputError
 from vo_core.eval import Drift, EvalConfig, evaluate, ground_truth_gap_end, loop_drifts
 from vo_core.events import FrameResult
