@@ -38,6 +38,7 @@ TASKS = ("run", "frame-drop", "two-loop")  # fdmo run, fdmo experiment frame-dro
 DEFAULT_TIMEOUT_S = 3600.0
 SOURCE_OPTIONS = {"format": "--format", "camera": "--camera", "gt": "--gt"}  # of fdmo run and fdmo experiment
 PATH_OPTIONS = ("camera", "gt")
+NAME_CHARACTERS = "A-Za-z0-9._-"  # of sequence, setting and task names: they name folders
 KEYS = ("sequences", "methods", "seeds", "settings", "tasks", "timeout_s")
 
 
@@ -159,8 +160,7 @@ def _sequence(entry: Any, where: str) -> SequenceSpec:
             options += [option, str(Path(value).absolute()) if key in PATH_OPTIONS else value]
     start, end = (_frame(entry.get(key), f"{where}: {key}") for key in ("start", "end"))
     name = str(entry.get("name") or _name_of(entry["path"]))
-    if not re.fullmatch(r"[A-Za-z0-9._-]+", name):
-        raise InputError(f"{where}: name {name!r} may only have letters, digits, '.', '_' and '-'")
+    _check_name(name, where)
     return SequenceSpec(name, source, tuple(options), start, end)
 
 
@@ -174,7 +174,7 @@ def _source(path: str) -> str:
 
 def _name_of(path: str) -> str:
     if path.startswith(SYNTHETIC_PREFIX):
-        return re.sub(r"[^A-Za-z0-9._-]", "-", path)
+        return re.sub(f"[^{NAME_CHARACTERS}]", "-", path)
     return Path(_source(path)).name
 
 
@@ -195,8 +195,7 @@ def _task(entry: Any, where: str) -> TaskSpec:
     if not isinstance(args, list):
         raise InputError(f"{where}: 'args' must be a list of options, e.g. [--at, '100']")
     name = str(entry.get("name", entry["task"]))
-    if not re.fullmatch(r"[A-Za-z0-9._-]+", name):
-        raise InputError(f"{where}: name {name!r} may only have letters, digits, '.', '_' and '-'")
+    _check_name(name, where)
     return TaskSpec(name, entry["task"], tuple(str(arg) for arg in args))
 
 
@@ -225,8 +224,7 @@ def _settings(value: Any, origin: str) -> dict[str, tuple[str, ...]]:
     settings = {}
     for name, overrides in value.items():
         where = f"{origin}: settings.{name}"
-        if not re.fullmatch(r"[A-Za-z0-9._-]+", str(name)):
-            raise InputError(f"{where}: the name may only have letters, digits, '.', '_' and '-'")
+        _check_name(str(name), where)
         if overrides is None:
             overrides = {}
         if isinstance(overrides, dict):
@@ -242,6 +240,12 @@ def _yaml_value(value: Any) -> str:
     """A value as ``--set`` reads it back (YAML): true, 0.5, [1, 2], a string."""
     return value if isinstance(value, str) else yaml.safe_dump(value, default_flow_style=True).strip().removesuffix(
         "\n...").strip()
+
+
+def _check_name(name: str, where: str) -> None:
+    """Names become folder names (a cell's) and table rows: letters, digits, '.', '_' and '-' only."""
+    if not re.fullmatch(f"[{NAME_CHARACTERS}]+", name):
+        raise InputError(f"{where}: name {name!r} may only have letters, digits, '.', '_' and '-'")
 
 
 def _positive(value: Any, where: str) -> float:
