@@ -47,6 +47,7 @@ DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
+MAPPING_MODES = ("sync", "threaded")
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -112,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--realtime", action="store_true",
                      help="frames arrive at their timestamps, as from a camera; those that arrive while the odometry "
                           "is busy are skipped (and counted), as a live system skips them")
+    run.add_argument("--mapping", choices=MAPPING_MODES,
+                     help="keyframe mapping on the tracking thread (sync: deterministic, the default) or on its own "
+                          "thread (threaded: the default with --realtime and --viser)")
     recording = run.add_mutually_exclusive_group()
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
@@ -184,7 +188,7 @@ def command_run(args: argparse.Namespace) -> int:
     from app.pipeline import check_method, open_source, run_sequence
     from app.player import Player
 
-    overrides = [*args.overrides, *([f"method={args.method}"] if args.method else [])]
+    overrides = [*_mapping_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
     source = DEFAULT_SEQUENCE if args.source is None else args.source
     sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
@@ -210,6 +214,14 @@ def command_run(args: argparse.Namespace) -> int:
         print(f"fdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
         return EXIT_OK if args.viser else EXIT_INTERRUPTED
     return EXIT_OK
+
+
+def _mapping_overrides(args: argparse.Namespace) -> list[str]:
+    """--mapping as settings (the user's own --set come after, and win). Live input maps on its own thread and
+    does not wait for keyframes (DSO's real-time mode); a run with the page open maps on its own thread."""
+    mode = args.mapping or ("threaded" if args.realtime or args.viser else "sync")
+    overrides = [f"mapping.threaded={str(mode == 'threaded').lower()}"]
+    return overrides + (["mapping.wait_for_keyframes=false"] if args.realtime else [])
 
 
 def _warm_up(config: Config, camera, quiet: bool) -> None:

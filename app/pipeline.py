@@ -211,6 +211,7 @@ class _Run:
             status = (COMPLETED if player.finished else RESTARTED if player.restart_requested
                       else INTERRUPTED if player.interrupted else STOPPED)
         finally:
+            self.odometry.flush()  # a mapping thread maps what it was given: its events count, its maps are written
             summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing)
         return summary
 

@@ -65,6 +65,22 @@ class HybridConfig:
 
 
 @dataclass
+class MappingConfig:
+    """Where mapping runs (vo_core/mapping_thread.py). Synchronous mapping is deterministic (the same input gives
+    the same trajectory) and the default of runs, experiments and benches; ``fdmo run --realtime`` and ``--viser``
+    run it on its own thread, as DSO's multi-threaded mode does, so that tracking keeps up with the camera."""
+
+    threaded: bool = False
+    # With the mapping thread, a frame that wants to be a keyframe while one is still being mapped either waits for
+    # it (offline: nothing is lost by waiting, and the keyframes are the synchronous run's) or goes on, and a later
+    # frame becomes the keyframe once the mapper is free (live input, DSO's real-time mode: fewer keyframes where
+    # mapping is slow, instead of frames missed while waiting).
+    wait_for_keyframes: bool = True
+    # DSO's mappingLoop: with more than 3 frames waiting, the mapper catches up (frames no longer traced).
+    max_queued_frames: int = 3
+
+
+@dataclass
 class Config:
     method: str = "fdmo"  # FDMO: direct odometry, the feature map beside it, divergence test and recovery
     seed: int = 0  # every random choice (RANSAC, sampling) draws from generators seeded with this
@@ -74,6 +90,7 @@ class Config:
     init: InitConfig = field(default_factory=InitConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
     fdmo: HybridConfig = field(default_factory=HybridConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
 
 
 def _field_types(cls: type) -> dict[str, Any]:

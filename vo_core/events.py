@@ -43,6 +43,7 @@ class EventKind(str, Enum):
     SCALE_JUMP = "scale_jump"  # the direct map's scale jumped or collapsed at a keyframe
     MAP_POINTS_CULLED = "map_points_culled"
     WINDOW_OPTIMIZED = "window_optimized"
+    MAPPING_BEHIND = "mapping_behind"  # the mapping thread fell behind and left frames untraced to catch up
     FRAME_SKIPPED = "frame_skipped"  # unreadable image skipped by the loader
     FRAME_REPEATED = "frame_repeated"  # the same image as the frame before (a stalled camera): no pose
     FRAMES_DROPPED = "frames_dropped"  # by the player: on purpose (scripted or live), or late (source "realtime")
@@ -124,7 +125,8 @@ class Sink(Protocol):
         """A frame was processed; ``frame`` is the datasets.Frame that was tracked."""
 
     def on_event(self, event: Event) -> None:
-        """An event happened (also listed in the FrameResult of its frame)."""
+        """An event happened (also listed in the FrameResult of its frame, or with a mapping thread, of the frame
+        the mapper worked on)."""
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         """The maps changed (after a keyframe, a window optimization or a recovery)."""

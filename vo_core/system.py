@@ -21,6 +21,10 @@ each half offers steps and decides nothing:
 
 ``--method direct`` runs the same flow without the feature half: a lost frame reinitializes at once (DSO)
 and a diverged one is reported and kept. The KLT baseline is a pipeline of its own and only passes through.
+
+With ``mapping.threaded`` (mapping_thread.py) a trusted frame of a proven map is only committed here; its tracing,
+and at a keyframe the direct and the feature mapping, run on the mapping thread while the next frames are tracked.
+Every other branch of the flowchart waits for the mapper first and then runs here, as in synchronous mode.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot,
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.init.registry import initializer_factory
+from vo_core.mapping_thread import MappingThread
 
 IMPLEMENTED_METHODS = ("fdmo", "klt", "direct", "features")
 DIRECT_METHODS = ("fdmo", "direct")
@@ -92,6 +97,9 @@ class Odometry:
                 from vo_core.features.feature_odometry import FeatureOdometry
 
                 self.features = FeatureOdometry(config.features, camera)
+        threaded = config.mapping.threaded and self.front_end is None
+        self.mapper = MappingThread(config.mapping.max_queued_frames) if threaded else None
+        self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
         self.posed: list[tuple[float, np.ndarray]] = []  # the current map's last two poses (timestamp, T_world_cam)
@@ -101,12 +109,34 @@ class Odometry:
     def track(self, frame) -> FrameResult:
         """Process the next frame, then tell the sinks what happened."""
         result = self.front_end.process(frame) if self.front_end is not None else self._track_hybrid(frame)
+        snapshots = self._deliver_mapped(result)
         for event in result.events:
             self.bus.event(event)
         self.bus.frame(frame, result)
-        if result.is_keyframe:
-            self.bus.map(self.map_snapshot())
+        for snapshot in snapshots:
+            self.bus.map(snapshot)
+        if result.is_keyframe and result.frame_index != self.queued_frame:  # a keyframe mapped here, at once
+            self.bus.map(self._snapshot())
         return result
+
+    def _deliver_mapped(self, result: FrameResult | None) -> list[MapSnapshot]:
+        """With a mapping thread: what it finished since the last frame goes out with this frame (sinks hear only
+        from the tracking thread). Its events go to the sinks first, with their own frames; its timings are added
+        to this frame's, and a keyframe's scale reading is this frame's. Returns the newest map snapshot."""
+        if self.mapper is None:
+            return []
+        finished = self.mapper.take_finished()
+        for mapped in finished:
+            for event in mapped.result.events:
+                self.bus.event(event)
+            if result is None:
+                continue
+            for stage, ms in mapped.result.timings_ms.items():
+                result.timings_ms[stage] = result.timings_ms.get(stage, 0.0) + ms
+            if mapped.result.scale_ratio is not None:
+                result.scale_ratio = mapped.result.scale_ratio
+                result.mean_inverse_depth = mapped.result.mean_inverse_depth
+        return [mapped.snapshot for mapped in finished if mapped.snapshot is not None][-1:]
 
     def report(self, event: Event) -> None:
         """Tell the sinks about something that happened outside the odometry (a frame the loader skipped,
@@ -114,6 +144,20 @@ class Odometry:
         self.bus.event(event)
 
     def map_snapshot(self) -> MapSnapshot:
+        """The maps as they stand once the mapping thread (if any) has mapped every frame it was given."""
+        self.flush()
+        return self._snapshot()
+
+    def flush(self) -> None:
+        """With a mapping thread: map what is queued and pass on what that produced, so that the maps and what the
+        sinks heard are complete (before a snapshot, at the end of a pass)."""
+        if self.mapper is None:
+            return
+        self.mapper.wait_idle()
+        for snapshot in self._deliver_mapped(None):
+            self.bus.map(snapshot)
+
+    def _snapshot(self) -> MapSnapshot:
         if self.front_end is not None:
             return self.front_end.map_snapshot()
         snapshot = self.direct.map_snapshot()
@@ -123,6 +167,10 @@ class Odometry:
         return snapshot
 
     def close(self) -> None:
+        """The mapper maps what it has and stops; what it produced reaches the sinks; then they close."""
+        if self.mapper is not None:
+            self.flush()
+            self.mapper.close()
         self.bus.close()
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 2
@@ -135,13 +183,13 @@ class Odometry:
         frame = self.direct.prepare(raw_frame)
         result.timings_ms["pyramid"] = _ms_since(start)
         if self.mode is _Mode.FEATURES:
-            keyframe = self._track_features(frame, result)
+            self._own_the_maps()
+            self._track_features(frame, result)
         elif self.direct.initialized:
-            keyframe = self._track_direct(frame, result)
+            self._track_direct(frame, result)
         else:
-            keyframe = self._initialize(frame, result)
-        if self.features is not None and (keyframe is not None or result.is_keyframe):
-            self._map_features(result)
+            self._own_the_maps()
+            self._initialize(frame, result)
         self._count_lost(frame, result)
         if result.T_world_cam is not None:
             self.posed = (self.posed + [(frame.timestamp, result.T_world_cam)])[-2:]
@@ -160,16 +208,70 @@ class Odometry:
         return True
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
-        tracking = self.direct.track(frame)
-        result.timings_ms["track"] = tracking.ms
-        judgement = judge(tracking, self.config.fdmo.divergence)
-        result.divergence_ratio = judgement.ratio if np.isfinite(judgement.ratio) else None
-        result.divergence_threshold = judgement.threshold
+        tracking, judgement = self._track_and_judge(frame, result)
+        if self.mapper is not None and self._waits_for_mapping(frame, tracking, judgement):
+            # Where the mapper published a newer reference meanwhile, the frame is tracked against that one (as it
+            # would have been, synchronously).
+            if self.direct.reference is not tracking.reference:
+                tracking, judgement = self._track_and_judge(frame, result)
         if judgement.verdict is Verdict.TRUSTED:
-            return self.direct.accept(frame, tracking, result)
+            return self._accept(frame, tracking, result)
         if self.features is None:
             return self._without_recovery(frame, tracking, judgement, result)
         return self._recover(frame, tracking, judgement, result)
+
+    def _track_and_judge(self, frame: DirectFrame, result: FrameResult) -> tuple[DirectTracking, Judgement]:
+        tracking = self.direct.track(frame)
+        result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
+        judgement = judge(tracking, self.config.fdmo.divergence)
+        result.divergence_ratio = judgement.ratio if np.isfinite(judgement.ratio) else None
+        result.divergence_threshold = judgement.threshold
+        return tracking, judgement
+
+    def _waits_for_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement) -> bool:
+        """With a mapping thread: whether the frame waits for it. Everything but a trusted frame may change the
+        maps (a recovery, a restart), so the mapper finishes first; a trusted frame that wants to be a keyframe
+        while one is pending waits for that one, unless the configuration says not to (one keyframe at a time)."""
+        if judgement.verdict is not Verdict.TRUSTED:
+            self._own_the_maps()
+            return True
+        if self.config.mapping.wait_for_keyframes and self.mapper.keyframe_pending and \
+                self.direct.wants_keyframe(frame, tracking):
+            self.mapper.wait_keyframe()
+            return True
+        return False
+
+    def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
+        """The direct half accepts the frame and maps it; at a new direct keyframe the feature map grows
+        (Fig. 4). With a mapping thread, a trusted frame of a proven map is mapped there and None is returned;
+        anything else is mapped here, at once."""
+        if self.mapper is None or not self.direct.initialized or self.direct.on_probation:
+            keyframe = self.direct.accept(frame, tracking, result)
+            self._grow_feature_map(keyframe, result)
+            return keyframe
+        self.direct.commit(frame, tracking, result)
+        make_keyframe = self.direct.wants_keyframe(frame, tracking) and not self.mapper.keyframe_pending
+        result.is_keyframe = make_keyframe
+
+        def map_direct(mapped: FrameResult) -> MapSnapshot | None:
+            self.direct.map_frame(frame, tracking, make_keyframe, mapped)
+            return self._snapshot() if make_keyframe and self.features is None else None
+
+        def map_features(mapped: FrameResult) -> MapSnapshot:
+            self._map_features(mapped)
+            return self._snapshot()
+
+        self.queued_frame = frame.index
+        self.mapper.submit(frame.index, frame.timestamp, map_direct, keyframe=make_keyframe, may_skip=not make_keyframe)
+        if make_keyframe and self.features is not None:
+            self.mapper.submit(frame.index, frame.timestamp, map_features)
+        return None
+
+    def _own_the_maps(self) -> None:
+        """Before the tracking thread changes the maps (a recovery, a restart, an initialization): the mapping
+        thread maps what it has and waits."""
+        if self.mapper is not None:
+            self.mapper.wait_idle()
 
     def _initialize(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
         """Feed the direct initializer. After a reinitialization, first try to go on in the old map, so that it
@@ -212,7 +314,7 @@ class Odometry:
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
         result.timings_ms["recovery"] = outcome.ms
         if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
-            return self.direct.accept(frame, tracking, result)
+            return self._accept(frame, tracking, result)
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
@@ -281,7 +383,7 @@ class Odometry:
                 _emit(result, EventKind.DIRECT_RESUMED,
                       {"keyframe": direct.reference.frame_index, "rmse": round(float(tracking.rmse_after), 3),
                        "last_rmse": round(float(tracking.last_rmse), 3), "stage": outcome.stage})
-                return self.direct.accept(frame, tracking, result)
+                return self._accept(frame, tracking, result)
             refined = tracking.converged and self.features.explained(
                 outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
             T_world_cam = tracking.T_world_cam if refined else T_world_cam
@@ -290,7 +392,9 @@ class Odometry:
             _emit(result, EventKind.DIRECT_RESTARTED,
                   {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined})
             self.mode = _Mode.DIRECT
-            return self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result)
+            keyframe = self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result)
+            self._grow_feature_map(keyframe, result)
+            return keyframe
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
         return None
 
@@ -348,7 +452,7 @@ class Odometry:
         if judgement.verdict is Verdict.DIVERGED or tracking.intervals_missed is not None:
             _emit(result, EventKind.DIVERGENCE_DETECTED,
                   {**judgement.details(tracking), "recovery": "none (--method direct keeps the pose)"})
-        return self.direct.accept(frame, tracking, result)
+        return self._accept(frame, tracking, result)
 
     def _report_failure(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                         result: FrameResult) -> None:
@@ -374,6 +478,7 @@ class Odometry:
         self.lost_frames += 1
         if self.features is None or self.lost_frames < self.config.fdmo.lost_frames_before_reinitialization:
             return
+        self._own_the_maps()
         origin = self.direct.last_pose.copy()
         _emit(result, EventKind.REINITIALIZATION,
               {"origin_from_frame_pose": origin.tolist(), "from_scratch": True, "lost_frames": self.lost_frames})
@@ -381,6 +486,10 @@ class Odometry:
         self.lost_frames = 0
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
+
+    def _grow_feature_map(self, keyframe: Keyframe | None, result: FrameResult) -> None:
+        if self.features is not None and (keyframe is not None or result.is_keyframe):
+            self._map_features(result)
 
     def _map_features(self, result: FrameResult, initialization=None) -> None:
         """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization

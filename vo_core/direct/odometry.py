@@ -5,6 +5,7 @@ the order of FDMO's flowchart (Fig. 2), so that the decisions about a frame are 
     odometry.initialize(frame, result)            # while not initialized: feed the initializer
     tracking = odometry.track(frame, prior)       # align against the newest keyframe; changes nothing
     keyframe = odometry.accept(frame, tracking, result)   # history, tracing, keyframe, window optimization
+        # = odometry.commit(...) (the tracking thread's part) then odometry.map_frame(...) (the mapper's part)
     odometry.reinitialize(T_world_origin)         # the next frames initialize again (the old window forgotten,
                                                   # or kept and tracked against until the new map exists)
 
@@ -103,6 +104,28 @@ class Keyframe:
         self.active_idepth = np.concatenate([self.active_idepth, idepth])
 
 
+@dataclass
+class TrackingReference:
+    """What frames are tracked against (DSO's coarse tracker with its reference): the newest keyframe's depth map
+    and the keyframe's pose and brightness as they were when it was made. Once published it is never changed
+    but for ``first_rmse``, so that with mapping on its own thread (mapping_thread.py) a frame is tracked
+    against one consistent reference while the window optimization moves the keyframes."""
+
+    keyframe: Keyframe
+    tracker: CoarseTracker
+    T_world_cam: np.ndarray  # the keyframe's pose when the reference was made
+    affine: np.ndarray
+    first_rmse: float = -1.0  # DSO's firstCoarseRMSE: the RMSE of the first frame accepted against it
+
+    @property
+    def frame_index(self) -> int:
+        return self.keyframe.frame_index
+
+    @property
+    def exposure(self) -> float | None:
+        return self.keyframe.exposure
+
+
 class _State(Enum):
     INITIALIZING = "initializing"
     TRACKING = "tracking"
@@ -147,7 +170,7 @@ class DirectTracking:
     ``good_enough`` says whether a hypothesis came within DSO's reTrackThreshold of it (trackNewCoarse stops
     trying guesses there; when none does, every motion hypothesis was worse than the last frame's fit)."""
 
-    reference: Keyframe
+    reference: TrackingReference
     result: TrackingResult | None  # the best hypothesis; None when none converged
     rmse_before: float
     achieved_rmse: np.ndarray
@@ -177,7 +200,7 @@ class DirectOdometry:
         self.camera = camera
         self.seed = seed
         self.selector = PixelSelector(config.selector, seed)
-        self.tracker = CoarseTracker(config.tracker)
+        self.reference: TrackingReference | None = None  # published by _set_tracking_reference
         self.window_optimizer = WindowOptimizer(
             config.window, config.tracker.huber_threshold, config.immature.outlier_threshold,
             config.immature.outlier_sum_component,
@@ -255,7 +278,7 @@ class DirectOdometry:
         ``T_world_cam_prior`` only (a pose found elsewhere, e.g. FDMO's feature-based recovery). Changes no
         state: ``accept`` commits the result."""
         start = time.perf_counter()
-        reference = self.newest_keyframe
+        reference = self.reference  # read once: a mapping thread may publish the next one meanwhile
         time_ratio = self._time_ratio(frame)
         if T_world_cam_prior is not None:
             hypotheses = [se3_inverse(T_world_cam_prior) @ reference.T_world_cam]
@@ -266,7 +289,7 @@ class DirectOdometry:
                 self.config.tracker.rotation_perturbation, time_ratio,
             )
         best, prior_rmse, achieved, tried = self._best_hypothesis(
-            frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
+            reference.tracker, frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
         )
         last_rmse = float(self.last_rmse[0])
         good_enough = bool(achieved[0] < last_rmse * self.config.tracker.retrack_threshold)
@@ -291,33 +314,49 @@ class DirectOdometry:
         return ratio if ratio > factor or ratio < 1.0 / factor else None
 
     def accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
-        """Commit a converged tracking: the frame's pose, the immature points traced in it, and a new keyframe
-        when DSO's criteria ask for one (returned; None otherwise)."""
+        """Commit a converged tracking, then map the frame at once: the immature points traced in it, and a new
+        keyframe when DSO's criteria ask for one (returned; None otherwise)."""
+        self.commit(frame, tracking, result)
+        return self.map_frame(frame, tracking, self.wants_keyframe(frame, tracking), result)
+
+    def commit(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> None:
+        """The tracking half of ``accept`` (DSO's tracking thread): the frame's pose, for the motion model and the
+        result."""
         reference, best = tracking.reference, tracking.result
-        T_world_cam = tracking.T_world_cam
-        result.T_world_cam = T_world_cam
+        result.T_world_cam = tracking.T_world_cam
         result.tracked = True
-        if self.start_check is not None and not self.start_check.passed:
+        if self.on_probation:
             self.start_check.posed(frame.timestamp)
         result.rmse_before, result.rmse_after = tracking.rmse_before, tracking.rmse_after
         result.num_inliers = best.num_terms
-        result.points_2d = self._visible(self.tracker.project_points(best.T_frame_ref))
+        result.points_2d = self._visible(reference.tracker.project_points(best.T_frame_ref))
         self.last_rmse = tracking.achieved_rmse
-        self.history = self.history[-1:] + [_Tracked(T_world_cam, best.affine, frame.timestamp)]
-        if self.first_rmse < 0:
-            self.first_rmse = best.rmse_after
+        self.history = self.history[-1:] + [_Tracked(result.T_world_cam, best.affine, frame.timestamp)]
+        if reference.first_rmse < 0:
+            reference.first_rmse = best.rmse_after
 
-        start = time.perf_counter()
-        self._trace(frame.pyramid, T_world_cam, best.affine, frame.exposure)
-        result.timings_ms["trace"] = _ms_since(start)
+    def wants_keyframe(self, frame: DirectFrame, tracking: DirectTracking) -> bool:
+        """DSO's criteria (needToMakeKF) for a converged tracking, before or after it is committed."""
+        reference, best = tracking.reference, tracking.result
+        first_rmse = reference.first_rmse if reference.first_rmse >= 0 else best.rmse_after
         factor, _ = relative_affine(reference.exposure, frame.exposure, reference.affine, best.affine)
-        if not needs_keyframe(
-            best.flow, factor, best.rmse_after, self.first_rmse, self.camera.width, self.camera.height,
+        return needs_keyframe(
+            best.flow, factor, best.rmse_after, first_rmse, self.camera.width, self.camera.height,
             self.config.keyframes,
-        ):
+        )
+
+    def map_frame(self, frame: DirectFrame, tracking: DirectTracking, make_keyframe: bool,
+                  result: FrameResult) -> Keyframe | None:
+        """The mapping half of ``accept`` (DSO's makeNonKeyFrame / makeKeyFrame): the window's immature points
+        traced in the committed frame, and the keyframe when ``make_keyframe`` (returned; None otherwise)."""
+        T_world_cam, affine = tracking.T_world_cam, tracking.result.affine
+        start = time.perf_counter()
+        self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
+        result.timings_ms["trace"] = _ms_since(start)
+        if not make_keyframe:
             return None
         start = time.perf_counter()
-        keyframe = self._add_keyframe(frame, T_world_cam, best.affine, result)
+        keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
         if self.start_failure is not None:
             self._discard_start(frame, result)
@@ -338,9 +377,13 @@ class DirectOdometry:
         self.initializer = self.make_initializer(None)
 
     def _reset_rmse(self) -> None:
-        """A new window's tracking reference has no RMSE to compare with yet."""
-        self.first_rmse = -1.0  # DSO's firstCoarseRMSE of the current reference
+        """A new window has no RMSE to compare with yet."""
         self.last_rmse = np.full(1, INITIAL_LAST_RMSE)  # DSO's lastCoarseRMSE (per level)
+
+    @property
+    def on_probation(self) -> bool:
+        """Whether the current start is still being checked (start_check.py): its keyframes may yet discard it."""
+        return self.start_check is not None and not self.start_check.passed
 
     @property
     def has_window(self) -> bool:
@@ -355,6 +398,7 @@ class DirectOdometry:
     def _forget_map(self, failed_initializer: str | None) -> None:
         self.state = _State.INITIALIZING
         self.keyframes = []
+        self.reference = None
         self.prior = MarginalizationPrior()
         self.history = []
         self.initializer = self.make_initializer(failed_initializer)
@@ -390,7 +434,7 @@ class DirectOdometry:
         result.events.append(_event(
             EventKind.KEYFRAME_ADDED, frame,
             {"keyframe": keyframe.frame_index, "window": [keyframe.frame_index], "active_points": len(inverse_depths),
-             "reference_points": self.tracker.num_points, "immature_points": len(keyframe.immature),
+             "reference_points": self.reference.tracker.num_points, "immature_points": len(keyframe.immature),
              "restart": True},
         ))
         return keyframe
@@ -445,21 +489,21 @@ class DirectOdometry:
     # ------------------------------------------------------------------------------------ tracking
 
     def _best_hypothesis(
-        self, pyramid, hypotheses, affine, exposure
+        self, tracker: CoarseTracker, pyramid, hypotheses, affine, exposure
     ) -> tuple[TrackingResult | None, float, np.ndarray, int]:
         """trackNewCoarse: try guesses in order, keep the best finest-level RMSE, stop when good enough.
 
         Returns the best result (None if none succeeded), the RMSE at the first guess (the motion prior), the
         best RMSE reached per level, and how many guesses were tried."""
         config = self.config.tracker
-        levels = min(len(pyramid), len(self.tracker.levels))
+        levels = min(len(pyramid), len(tracker.levels))
         achieved = np.full(levels, np.nan)
         best: TrackingResult | None = None
         prior_rmse = float("nan")
         tried = 0
         for attempt, T_frame_ref in enumerate(hypotheses):
             tried += 1
-            tracking = self.tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
+            tracking = tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
             if attempt == 0:
                 prior_rmse = tracking.rmse_before
             rmse = tracking.rmse_per_level
@@ -518,7 +562,7 @@ class DirectOdometry:
                     "window": [k.frame_index for k in self.keyframes],
                     "dropped": dropped,
                     "activated_points": activated,
-                    "reference_points": self.tracker.num_points,
+                    "reference_points": self.reference.tracker.num_points,
                     "immature_points": len(keyframe.immature),
                     "rmse_before": result.rmse_before,
                     "rmse_after": result.rmse_after,
@@ -534,12 +578,14 @@ class DirectOdometry:
         for keyframe in self.keyframes:
             self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         newest = self.keyframes[-1]
-        self.history[-1] = _Tracked(newest.T_world_cam, newest.affine, newest.timestamp)
+        history = self.history  # with a mapping thread, tracking may have gone on: then it is not the last frame
+        if history and history[-1].timestamp == newest.timestamp:
+            history[-1] = _Tracked(newest.T_world_cam, newest.affine, newest.timestamp)
         result.T_world_cam = newest.T_world_cam.copy()
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
         self._watch_scale(frame, result)
-        if self.start_check is not None and not self.start_check.passed:
+        if self.on_probation:
             self._check_start(report)
 
     def _watch_scale(self, frame, result: FrameResult) -> None:
@@ -718,10 +764,12 @@ class DirectOdometry:
         uv = self.camera.project(points)
         inside = self.camera.in_image(uv)
         keyframe.reference_uv, keyframe.reference_idepth = uv[inside], 1.0 / points[inside, 2]
-        self.tracker.set_reference(
+        tracker = CoarseTracker(self.config.tracker)
+        tracker.set_reference(
             keyframe.pyramid, keyframe.reference_uv, keyframe.reference_idepth, keyframe.affine, keyframe.exposure
         )
-        self.first_rmse = -1.0
+        # One assignment publishes it whole: the tracking thread reads ``self.reference`` once per frame.
+        self.reference = TrackingReference(keyframe, tracker, keyframe.T_world_cam.copy(), keyframe.affine.copy())
 
     def _visible(self, uv: np.ndarray) -> np.ndarray:
         return uv[self.camera.in_image(uv)]

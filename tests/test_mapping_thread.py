@@ -1,0 +1,145 @@
+"""Mapping on its own thread (vo_core/mapping_thread.py): the same trajectory as synchronous mapping within a
+tolerance, every mapped keyframe reported through the sinks from the tracking thread, a clean stop, errors that
+reach the caller, and a mapper that falls behind catching up and saying so."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+
+import pytest
+
+from app.cli import _mapping_overrides
+from test_fdmo_system import SMOOTH, run
+from vo_core.events import EventKind, FrameResult
+from vo_core.mapping_thread import MappingThread
+
+THREADED = ["mapping.threaded=true"]
+
+
+class Recorder:
+    """A sink that remembers what it heard and on which thread."""
+
+    def __init__(self):
+        self.events, self.frames, self.maps, self.threads, self.closed = [], [], [], set(), False
+
+    def on_frame(self, frame, result):
+        self.frames.append(result)
+        self.threads.add(threading.get_ident())
+
+    def on_event(self, event):
+        self.events.append(event)
+        self.threads.add(threading.get_ident())
+
+    def on_map(self, snapshot):
+        self.maps.append(snapshot)
+        self.threads.add(threading.get_ident())
+
+    def close(self):
+        self.closed = True
+
+
+@pytest.fixture(scope="module")
+def synchronous():
+    ate, results, odometry = run("fdmo", SMOOTH)
+    odometry.close()
+    return ate, results
+
+
+def test_threaded_mapping_gives_the_synchronous_trajectory_within_a_tolerance(synchronous):
+    sync_ate, sync_results = synchronous
+    ate, results, odometry = run("fdmo", SMOOTH, overrides=THREADED)
+    odometry.close()
+    assert sync_ate < 0.002
+    # Frames between a keyframe and its mapping are tracked against the reference before it: close, not equal.
+    assert ate < 2 * sync_ate
+    assert sum(r.T_world_cam is not None for r in results) == sum(r.T_world_cam is not None for r in sync_results)
+    # A frame that wants a keyframe while one is being mapped waits for it: the keyframes are the synchronous ones.
+    assert sum(r.is_keyframe for r in results) == sum(r.is_keyframe for r in sync_results)
+
+
+def test_keyframes_mapped_on_the_thread_reach_the_sinks_from_the_tracking_thread():
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    recorder = Recorder()
+    odometry = Odometry(load_config(overrides=THREADED), SMOOTH.camera, [recorder])
+    results = [odometry.track(frame) for frame in SMOOTH]
+    assert odometry.mapper._thread.is_alive()
+    odometry.close()
+    assert not odometry.mapper._thread.is_alive() and recorder.closed
+    assert recorder.threads == {threading.get_ident()}
+    added = [e for e in recorder.events if e.kind is EventKind.KEYFRAME_ADDED]
+    # Every keyframe asked for was mapped and reported (the initializer's first keyframe has no frame result).
+    assert sorted(e.frame_index for e in added)[1:] == [r.frame_index for r in results if r.is_keyframe]
+    # The last map the sinks got is the one after the last keyframe (snapshots that queued up are coalesced).
+    assert max(recorder.maps[-1].keyframe_poses) == added[-1].frame_index
+    assert {e.details["keyframe"] for e in recorder.events if e.kind is EventKind.FEATURE_KEYFRAME_ADDED} == {
+        e.frame_index for e in added}
+
+
+def test_stopping_mid_run_maps_what_was_queued_and_joins_the_thread():
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    recorder = Recorder()
+    odometry = Odometry(load_config(overrides=THREADED), SMOOTH.camera, [recorder])
+    for frame in list(SMOOTH)[:25]:
+        last = odometry.track(frame)
+    odometry.close()
+    assert not odometry.mapper._thread.is_alive()
+    assert recorder.closed and recorder.frames[-1] is last
+    asked = [r.frame_index for r in recorder.frames if r.is_keyframe]
+    mapped = [e.frame_index for e in recorder.events if e.kind is EventKind.KEYFRAME_ADDED]
+    assert asked and set(asked) <= set(mapped)
+
+
+def test_an_error_in_the_mapper_is_raised_on_the_tracking_thread():
+    mapper = MappingThread(max_queued_frames=3)
+
+    def broken(result: FrameResult):
+        raise ValueError("the window optimization broke")
+
+    mapper.submit(7, 0.7, broken, keyframe=True)
+    with pytest.raises(ValueError, match="the window optimization broke"):
+        mapper.wait_idle()
+    mapper.close()
+
+
+def test_a_mapper_that_falls_behind_leaves_frames_untraced_and_says_how_many():
+    mapper = MappingThread(max_queued_frames=1)
+    release = threading.Event()
+    mapped = []
+
+    def slow_keyframe(result: FrameResult):
+        release.wait(5.0)
+        mapped.append(result.frame_index)
+
+    def trace(result: FrameResult):
+        mapped.append(result.frame_index)
+
+    mapper.submit(0, 0.0, slow_keyframe, keyframe=True)
+    assert mapper.keyframe_pending
+    for index in range(1, 6):
+        mapper.submit(index, index / 10, trace, may_skip=True)
+    release.set()
+    mapper.wait_keyframe()
+    mapper.wait_idle()
+    finished = mapper.take_finished()
+    mapper.close()
+    # After the keyframe, 5 traces wait: the first 3 are left out while more than one waits behind them.
+    assert mapped == [0, 4, 5] and not mapper.keyframe_pending
+    behind = [e for f in finished for e in f.result.events if e.kind is EventKind.MAPPING_BEHIND]
+    assert [(e.frame_index, e.details["untraced_frames"]) for e in behind] == [(4, 3)]
+
+
+@pytest.mark.parametrize("flags, expected", [
+    ({}, ["mapping.threaded=false"]),
+    ({"viser": True}, ["mapping.threaded=true"]),
+    ({"realtime": True}, ["mapping.threaded=true", "mapping.wait_for_keyframes=false"]),
+    ({"realtime": True, "mapping": "sync"}, ["mapping.threaded=false", "mapping.wait_for_keyframes=false"]),
+    ({"mapping": "threaded"}, ["mapping.threaded=true"]),
+])
+def test_the_mapping_mode_of_a_run(flags, expected):
+    args = argparse.Namespace(**{"mapping": None, "realtime": False, "viser": False, **flags})
+    assert _mapping_overrides(args) == expected

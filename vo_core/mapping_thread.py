@@ -1,0 +1,148 @@
+"""Mapping on its own thread (DSO's multi-threaded mode: FullSystem::mappingLoop).
+
+The tracking thread tracks each frame against the newest published reference and hands the frame to the mapper:
+the mapper traces the window's immature points in it and, when tracking asked for a keyframe, runs the window
+optimization, marginalization and feature mapping, and publishes the new reference (``DirectOdometry`` assigns it
+whole, so that tracking picks it up at its next frame). Meanwhile tracking goes on against the reference it has.
+The compiled kernels release the GIL (numba ``nogil``, OpenCV), so on two cores the threads really overlap.
+
+Three rules keep it simple and safe:
+- one keyframe at a time: a frame that wants to be a keyframe while one is queued or being mapped waits for it,
+  and is tracked again against the reference it publishes (DSO asks for a keyframe only once the reference of the
+  last request is published); the feature map grows at that keyframe in a job of its own, beside tracking;
+- when frames queue up, the mapper catches up (DSO's needToKetchupMapping): a frame that is not a keyframe is no
+  longer traced while more than ``max_queued_frames`` wait; the next frame it maps reports how many it left
+  untraced (``mapping_behind``);
+- whatever changes the maps outside a keyframe (a recovery, a restart, a new initialization, a start on probation)
+  waits for the mapper to be idle (``wait_idle``) and then runs on the tracking thread, as in synchronous mode.
+
+What a job reports (its events, timings, the scale watch's reading, a map snapshot) is collected on the tracking
+thread (``take_finished``) and passed on with the next frame, so that sinks are only ever called from the tracking
+thread. An exception in the mapper is raised again there.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable
+
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+
+# A job maps one frame into the given result (its own, not the frame's: that one has gone to the sinks) and returns
+# the maps' snapshot when they changed.
+Job = Callable[[FrameResult], MapSnapshot | None]
+
+
+@dataclass
+class MappedFrame:
+    """What mapping one frame produced: its events, timings and readings, and the maps after it when they changed."""
+
+    result: FrameResult
+    snapshot: MapSnapshot | None
+
+
+@dataclass
+class _Queued:
+    result: FrameResult
+    job: Job
+    keyframe: bool  # a direct keyframe: tracking waits for it before it asks for the next one
+    may_skip: bool  # only traces: left out when the mapper catches up
+
+
+class MappingThread:
+    def __init__(self, max_queued_frames: int):
+        self.max_queued_frames = max_queued_frames
+        self._queue: deque[_Queued] = deque()
+        self._finished: list[MappedFrame] = []
+        self._busy = False  # a job is running
+        self._keyframe_queued = False  # a keyframe job is queued or running
+        self._untraced = 0  # frames left untraced while catching up, not yet reported
+        self._error: BaseException | None = None
+        self._stopping = False
+        self._condition = threading.Condition()
+        self._thread = threading.Thread(target=self._loop, name="fdmo-mapping", daemon=True)
+        self._thread.start()
+
+    @property
+    def keyframe_pending(self) -> bool:
+        """Whether a keyframe is queued or being mapped (tracking asks for no other meanwhile)."""
+        with self._condition:
+            return self._keyframe_queued
+
+    def submit(self, frame_index: int, timestamp: float, job: Job, keyframe: bool = False,
+               may_skip: bool = False) -> None:
+        with self._condition:
+            self._raise_error()
+            result = FrameResult(frame_index, timestamp, None, tracked=True)
+            self._queue.append(_Queued(result, job, keyframe, may_skip))
+            self._keyframe_queued |= keyframe
+            self._condition.notify_all()
+
+    def wait_idle(self) -> None:
+        """Until every queued job is done: the maps are then the tracking thread's to change."""
+        self._wait(lambda: not self._queue and not self._busy)
+
+    def wait_keyframe(self) -> None:
+        """Until the pending keyframe is mapped and its reference published."""
+        self._wait(lambda: not self._keyframe_queued)
+
+    def _wait(self, done: Callable[[], bool]) -> None:
+        with self._condition:
+            self._condition.wait_for(lambda: self._error is not None or done())
+            self._raise_error()
+
+    def take_finished(self) -> list[MappedFrame]:
+        """The frames mapped since the last call, oldest first."""
+        with self._condition:
+            self._raise_error()
+            finished, self._finished = self._finished, []
+            return finished
+
+    def close(self) -> None:
+        """Map what is queued, then stop the thread (the run ends, or was interrupted: the files stay complete)."""
+        with self._condition:
+            self._stopping = True
+            self._condition.notify_all()
+        self._thread.join()
+
+    # ------------------------------------------------------------------------------------ the mapper's side
+
+    def _loop(self) -> None:
+        while True:
+            with self._condition:
+                self._condition.wait_for(lambda: self._queue or self._stopping)
+                if not self._queue:
+                    return
+                queued = self._queue.popleft()
+                if queued.may_skip and len(self._queue) > self.max_queued_frames:
+                    self._untraced += 1
+                    self._condition.notify_all()
+                    continue
+                self._busy = True
+                if self._untraced:
+                    self._report_untraced(queued.result)
+            try:
+                snapshot = queued.job(queued.result)
+            except BaseException as error:  # raised again on the tracking thread
+                with self._condition:
+                    self._error, self._busy = error, False
+                    self._queue.clear()
+                    self._condition.notify_all()
+                return
+            with self._condition:
+                self._finished.append(MappedFrame(queued.result, snapshot))
+                self._busy = False
+                self._keyframe_queued = any(q.keyframe for q in self._queue)
+                self._condition.notify_all()
+
+    def _report_untraced(self, result: FrameResult) -> None:
+        details = {"untraced_frames": self._untraced, "queued_frames": len(self._queue)}
+        result.events.append(Event(EventKind.MAPPING_BEHIND, result.frame_index, float(result.timestamp), details))
+        self._untraced = 0
+
+    def _raise_error(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
