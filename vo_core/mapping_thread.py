@@ -6,13 +6,18 @@ optimization, marginalization and feature mapping, and publishes the new referen
 whole, so that tracking picks it up at its next frame). Meanwhile tracking goes on against the reference it has.
 The compiled kernels release the GIL (numba ``nogil``, OpenCV), so on two cores the threads really overlap.
 
-Three rules keep it simple and safe:
-- one keyframe at a time: a frame that wants to be a keyframe while one is queued or being mapped waits for it,
-  and is tracked again against the reference it publishes (DSO asks for a keyframe only once the reference of the
-  last request is published); the feature map grows at that keyframe in a job of its own, beside tracking;
-- when frames queue up, the mapper catches up (DSO's needToKetchupMapping): a frame that is not a keyframe is no
-  longer traced while more than ``max_queued_frames`` wait; the next frame it maps reports how many it left
-  untraced (``mapping_behind``);
+Two modes (``mapping.wait_for_keyframes``):
+- offline (DSO's linearizeOperation, but with the feature mapping and the tracing beside tracking): no frame is
+  tracked while a keyframe is being mapped, and every frame is traced, so both maps are the synchronous run's and so
+  are the poses (but a keyframe's own: its result goes out with the tracked pose, before the window optimization
+  refines it); what runs beside tracking is the tracing of the frames and the feature map's growth at each
+  keyframe (a job of its own);
+- live (DSO's real-time mode): tracking never waits for a keyframe; while one is pending no other is asked for (a
+  later frame becomes the keyframe once the mapper is free), and when frames queue up the mapper catches up (DSO's
+  needToKetchupMapping): a frame that is not a keyframe is no longer traced while more than ``max_queued_frames``
+  wait; the next frame it maps reports how many it left untraced (``mapping_behind``).
+
+In both:
 - whatever changes the maps outside a keyframe (a recovery, a restart, a new initialization, a start on probation)
   waits for the mapper to be idle (``wait_idle``) and then runs on the tracking thread, as in synchronous mode.
 
@@ -52,7 +57,8 @@ class _Queued:
 
 
 class MappingThread:
-    def __init__(self, max_queued_frames: int):
+    def __init__(self, max_queued_frames: int | None, name: str):
+        """``max_queued_frames``: None never leaves a frame untraced."""
         self.max_queued_frames = max_queued_frames
         self._queue: deque[_Queued] = deque()
         self._finished: list[MappedFrame] = []
@@ -62,7 +68,7 @@ class MappingThread:
         self._error: BaseException | None = None
         self._stopping = False
         self._condition = threading.Condition()
-        self._thread = threading.Thread(target=self._loop, name="fdmo-mapping", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name=f"fdmo-{name}", daemon=True)
         self._thread.start()
 
     @property
@@ -116,7 +122,8 @@ class MappingThread:
                 if not self._queue:
                     return
                 queued = self._queue.popleft()
-                if queued.may_skip and len(self._queue) > self.max_queued_frames:
+                if queued.may_skip and self.max_queued_frames is not None and \
+                        len(self._queue) > self.max_queued_frames:
                     self._untraced += 1
                     self._condition.notify_all()
                     continue

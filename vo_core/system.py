@@ -29,7 +29,9 @@ Every other branch of the flowchart waits for the mapper first and then runs her
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from dataclasses import dataclass
 from enum import Enum
 from typing import Protocol
 
@@ -97,9 +99,18 @@ class Odometry:
                 from vo_core.features.feature_odometry import FeatureOdometry
 
                 self.features = FeatureOdometry(config.features, camera)
-        threaded = config.mapping.threaded and self.front_end is None
-        self.mapper = MappingThread(config.mapping.max_queued_frames) if threaded else None
+        mapping = config.mapping
+        threaded = mapping.threaded and self.front_end is None
+        # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
+        catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
+        self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
+        # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
+        # its feature mapping in a thread of its own too).
+        has_features = self.features is not None
+        self.feature_mapper = MappingThread(None, "feature-mapping") if threaded and has_features else None
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
+        self.feature_keyframes_pending: set[int] = set()  # direct keyframes handed to the feature map, not added yet
+        self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
         self.posed: list[tuple[float, np.ndarray]] = []  # the current map's last two poses (timestamp, T_world_cam)
@@ -126,6 +137,8 @@ class Odometry:
         if self.mapper is None:
             return []
         finished = self.mapper.take_finished()
+        if self.feature_mapper is not None:
+            finished += self.feature_mapper.take_finished()
         for mapped in finished:
             for event in mapped.result.events:
                 self.bus.event(event)
@@ -136,7 +149,15 @@ class Odometry:
             if mapped.result.scale_ratio is not None:
                 result.scale_ratio = mapped.result.scale_ratio
                 result.mean_inverse_depth = mapped.result.mean_inverse_depth
-        return [mapped.snapshot for mapped in finished if mapped.snapshot is not None][-1:]
+        for mapped in finished:
+            if mapped.snapshot is not None:
+                half = "features" if mapped.snapshot.direct_points_world is None else "direct"
+                self.snapshots[half] = mapped.snapshot
+        if not any(mapped.snapshot is not None for mapped in finished) or "direct" not in self.snapshots:
+            return []
+        features = self.snapshots.get("features", MapSnapshot())
+        return [dataclasses.replace(self.snapshots["direct"], feature_points_world=features.feature_points_world,
+                                    feature_keyframe_poses=features.feature_keyframe_poses)]
 
     def report(self, event: Event) -> None:
         """Tell the sinks about something that happened outside the odometry (a frame the loader skipped,
@@ -153,7 +174,7 @@ class Odometry:
         sinks heard are complete (before a snapshot, at the end of a pass)."""
         if self.mapper is None:
             return
-        self.mapper.wait_idle()
+        self._own_the_maps()
         for snapshot in self._deliver_mapped(None):
             self.bus.map(snapshot)
 
@@ -171,6 +192,8 @@ class Odometry:
         if self.mapper is not None:
             self.flush()
             self.mapper.close()
+            if self.feature_mapper is not None:
+                self.feature_mapper.close()
         self.bus.close()
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 2
@@ -186,6 +209,8 @@ class Odometry:
             self._own_the_maps()
             self._track_features(frame, result)
         elif self.direct.initialized:
+            if self.mapper is not None and self.config.mapping.wait_for_keyframes:
+                self.mapper.wait_keyframe()  # tracked against the newest keyframe, as synchronously
             self._track_direct(frame, result)
         else:
             self._own_the_maps()
@@ -209,9 +234,10 @@ class Odometry:
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
         tracking, judgement = self._track_and_judge(frame, result)
-        if self.mapper is not None and self._waits_for_mapping(frame, tracking, judgement):
-            # Where the mapper published a newer reference meanwhile, the frame is tracked against that one (as it
-            # would have been, synchronously).
+        if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
+            # What follows may change the maps (a recovery, a restart): the mapper finishes first, and where it
+            # published a newer reference meanwhile, the frame is tracked against that one.
+            self._own_the_maps()
             if self.direct.reference is not tracking.reference:
                 tracking, judgement = self._track_and_judge(frame, result)
         if judgement.verdict is Verdict.TRUSTED:
@@ -228,18 +254,6 @@ class Odometry:
         result.divergence_threshold = judgement.threshold
         return tracking, judgement
 
-    def _waits_for_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement) -> bool:
-        """With a mapping thread: whether the frame waits for it. Everything but a trusted frame may change the
-        maps (a recovery, a restart), so the mapper finishes first; a trusted frame that wants to be a keyframe
-        while one is pending waits for that one, unless the configuration says not to (one keyframe at a time)."""
-        if judgement.verdict is not Verdict.TRUSTED:
-            self._own_the_maps()
-            return True
-        if self.config.mapping.wait_for_keyframes and self.mapper.keyframe_pending and \
-                self.direct.wants_keyframe(frame, tracking):
-            self.mapper.wait_keyframe()
-            return True
-        return False
 
     def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
         """The direct half accepts the frame and maps it; at a new direct keyframe the feature map grows
@@ -255,23 +269,32 @@ class Odometry:
 
         def map_direct(mapped: FrameResult) -> MapSnapshot | None:
             self.direct.map_frame(frame, tracking, make_keyframe, mapped)
-            return self._snapshot() if make_keyframe and self.features is None else None
-
-        def map_features(mapped: FrameResult) -> MapSnapshot:
-            self._map_features(mapped)
-            return self._snapshot()
+            if not make_keyframe:
+                return None
+            if self.feature_mapper is not None:
+                new, window_poses = self._new_feature_keyframes()
+                self.feature_mapper.submit(frame.index, frame.timestamp,
+                                           lambda grown: self._grow_features_beside(new, window_poses, grown))
+            return self.direct.map_snapshot()
 
         self.queued_frame = frame.index
         self.mapper.submit(frame.index, frame.timestamp, map_direct, keyframe=make_keyframe, may_skip=not make_keyframe)
-        if make_keyframe and self.features is not None:
-            self.mapper.submit(frame.index, frame.timestamp, map_features)
         return None
+
+    def _grow_features_beside(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
+                              result: FrameResult) -> MapSnapshot:
+        """The feature mapping thread's job: the feature map grows at the keyframes the direct mapper handed it."""
+        self._add_feature_keyframes(new, window_poses, result)
+        return MapSnapshot(feature_points_world=self.features.points_world(),
+                           feature_keyframe_poses=self.features.keyframe_poses())
 
     def _own_the_maps(self) -> None:
         """Before the tracking thread changes the maps (a recovery, a restart, an initialization): the mapping
         thread maps what it has and waits."""
         if self.mapper is not None:
-            self.mapper.wait_idle()
+            self.mapper.wait_idle()  # first: the direct mapper may still hand keyframes to the feature mapper
+        if self.feature_mapper is not None:
+            self.feature_mapper.wait_idle()
 
     def _initialize(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
         """Feed the direct initializer. After a reinitialization, first try to go on in the old map, so that it
@@ -495,12 +518,24 @@ class Odometry:
         """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization
         both of the initializer's keyframes, and the initializer's feature tracks their first points), at its
         direct pose."""
+        self._add_feature_keyframes(*self._new_feature_keyframes(), result, initialization)
+
+    def _new_feature_keyframes(self) -> tuple[list[_NewFeatureKeyframe], dict[int, np.ndarray]]:
+        """The direct keyframes the feature map has not been given yet, and the window's poses, read now, where the
+        direct map is not changing: with mapping threads the feature map grows from them beside the direct map."""
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
-        for keyframe in self.direct.keyframes:
-            if keyframe.frame_index in self.features.map.keyframes:
-                continue
+        given = self.features.map.keyframes, self.feature_keyframes_pending
+        new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth)
+               for k in self.direct.keyframes if all(k.frame_index not in keyframes for keyframes in given)]
+        self.feature_keyframes_pending.update(k.frame_index for k in new)
+        return new, window_poses
+
+    def _add_feature_keyframes(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
+                               result: FrameResult, initialization=None) -> None:
+        for keyframe in new:
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
+            self.feature_keyframes_pending.discard(keyframe.frame_index)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
                 report.tracked_points = self._add_initial_tracks(initialization)
             result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
@@ -535,6 +570,17 @@ class Odometry:
         uv_to = outcome.features.features.uv[pose.feature_ids[front]]
         result.matches_2d = np.hstack([uv_from, uv_to])
         result.matches_inlier = pose.inlier[front]
+
+
+@dataclass(frozen=True)
+class _NewFeatureKeyframe:
+    """A direct keyframe as the feature map takes it (FDMO Fig. 4)."""
+
+    frame_index: int
+    timestamp: float
+    image: np.ndarray
+    T_world_cam: np.ndarray
+    median_depth: float
 
 
 def _ms_since(start: float) -> float:

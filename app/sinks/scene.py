@@ -82,6 +82,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.SCALE_JUMP: EventStyle("WARN", (255, 200, 0)),
     EventKind.MAP_POINTS_CULLED: _ROUTINE,
     EventKind.WINDOW_OPTIMIZED: _ROUTINE,
+    EventKind.MAPPING_BEHIND: EventStyle("WARN", (200, 140, 90), marked=False),  # frames left untraced, not a failure
     EventKind.FRAME_SKIPPED: EventStyle("WARN", (160, 160, 160)),
     EventKind.FRAME_REPEATED: EventStyle("WARN", (160, 160, 160)),
     EventKind.FRAMES_DROPPED: EventStyle("INFO", (90, 90, 255)),
