@@ -188,7 +188,7 @@ def command_run(args: argparse.Namespace) -> int:
     from app.pipeline import check_method, open_source, run_sequence
     from app.player import Player
 
-    overrides = [*_mapping_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
+    overrides = [*_live_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
     source = DEFAULT_SEQUENCE if args.source is None else args.source
     sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
@@ -216,12 +216,14 @@ def command_run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _mapping_overrides(args: argparse.Namespace) -> list[str]:
-    """--mapping as settings (the user's own --set come after, and win). Live input maps on its own thread and
-    does not wait for keyframes (DSO's real-time mode); a run with the page open maps on its own thread."""
+def _live_overrides(args: argparse.Namespace) -> list[str]:
+    """--mapping, and what live input changes, as settings (the user's own --set come after, and win). Live input
+    maps on its own thread and does not wait for keyframes (DSO's real-time mode), nor for DSO's rotation guesses
+    (direct.tracker.rotation_hypotheses); a run with the page open maps on its own thread."""
     mode = args.mapping or ("threaded" if args.realtime or args.viser else "sync")
     overrides = [f"mapping.threaded={str(mode == 'threaded').lower()}"]
-    return overrides + (["mapping.wait_for_keyframes=false"] if args.realtime else [])
+    live = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false"]
+    return overrides + (live if args.realtime else [])
 
 
 def _warm_up(config: Config, camera, quiet: bool) -> None:

@@ -47,6 +47,9 @@ def test_constant_velocity_comes_first_and_extrapolates_the_last_motion():
     assert len(hypotheses) == 5 + 26  # DSO: 5 motion guesses and 26 rotated constant-velocity guesses
     np.testing.assert_allclose(hypotheses[4], np.eye(4))  # zero motion from the keyframe
     assert all(np.allclose(h[:3, :3].T @ h[:3, :3], np.eye(3)) for h in hypotheses)
+    # Live runs leave the rotations out: DSO's 5 motion guesses, the same ones.
+    np.testing.assert_allclose(np.array(motion_hypotheses(T_world_prev2, T_world_prev1, T_world_ref, None)),
+                               np.array(hypotheses[:5]))
 
 
 def test_missed_frames_add_the_constant_velocity_over_the_time_that_passed():

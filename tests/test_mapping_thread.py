@@ -10,12 +10,13 @@ import threading
 import numpy as np
 import pytest
 
-from app.cli import _mapping_overrides
+from app.cli import _live_overrides
 from test_fdmo_system import SMOOTH, run
 from vo_core.events import EventKind, FrameResult
 from vo_core.mapping_thread import MappingThread
 
 THREADED = ["mapping.threaded=true"]
+LIVE = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false"]
 
 
 class Recorder:
@@ -148,10 +149,10 @@ def test_a_mapper_that_falls_behind_leaves_frames_untraced_and_says_how_many():
 @pytest.mark.parametrize("flags, expected", [
     ({}, ["mapping.threaded=false"]),
     ({"viser": True}, ["mapping.threaded=true"]),
-    ({"realtime": True}, ["mapping.threaded=true", "mapping.wait_for_keyframes=false"]),
-    ({"realtime": True, "mapping": "sync"}, ["mapping.threaded=false", "mapping.wait_for_keyframes=false"]),
+    ({"realtime": True}, ["mapping.threaded=true", *LIVE]),
+    ({"realtime": True, "mapping": "sync"}, ["mapping.threaded=false", *LIVE]),
     ({"mapping": "threaded"}, ["mapping.threaded=true"]),
 ])
 def test_the_mapping_mode_of_a_run(flags, expected):
     args = argparse.Namespace(**{"mapping": None, "realtime": False, "viser": False, **flags})
-    assert _mapping_overrides(args) == expected
+    assert _live_overrides(args) == expected

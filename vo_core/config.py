@@ -71,12 +71,12 @@ class MappingConfig:
     run it on its own thread, as DSO's multi-threaded mode does, so that tracking keeps up with the camera."""
 
     threaded: bool = False
-    # With the mapping thread, a frame that wants to be a keyframe while one is still being mapped either waits for
-    # it (offline: nothing is lost by waiting, and the keyframes are the synchronous run's) or goes on, and a later
-    # frame becomes the keyframe once the mapper is free (live input, DSO's real-time mode: fewer keyframes where
-    # mapping is slow, instead of frames missed while waiting).
+    # With mapping threads, tracking either waits while a keyframe is being mapped, and every frame is traced
+    # (offline: nothing is lost by waiting, and the maps are the synchronous run's), or goes on, and a later frame
+    # becomes the keyframe once the mapper is free (live input, DSO's real-time mode: fewer keyframes where mapping
+    # is slow, instead of frames missed while waiting).
     wait_for_keyframes: bool = True
-    # DSO's mappingLoop: with more than 3 frames waiting, the mapper catches up (frames no longer traced).
+    # DSO's mappingLoop, live: with more than 3 frames waiting, the mapper catches up (frames no longer traced).
     max_queued_frames: int = 3
 
 

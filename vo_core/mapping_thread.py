@@ -1,10 +1,11 @@
 """Mapping on its own thread (DSO's multi-threaded mode: FullSystem::mappingLoop).
 
-The tracking thread tracks each frame against the newest published reference and hands the frame to the mapper:
-the mapper traces the window's immature points in it and, when tracking asked for a keyframe, runs the window
-optimization, marginalization and feature mapping, and publishes the new reference (``DirectOdometry`` assigns it
-whole, so that tracking picks it up at its next frame). Meanwhile tracking goes on against the reference it has.
-The compiled kernels release the GIL (numba ``nogil``, OpenCV), so on two cores the threads really overlap.
+The tracking thread tracks each frame against the newest published reference and hands the frame to the direct
+mapper: it traces the window's immature points in it and, when tracking asked for a keyframe, runs the window
+optimization, marginalization and activation, and publishes the new reference (``DirectOdometry`` assigns it
+whole, so that tracking picks it up at its next frame); it then hands the keyframe, as it stands, to the feature
+mapper, a second ``MappingThread`` on which the feature map grows (FDMO Fig. 4). The compiled kernels release the
+GIL (numba ``nogil``, OpenCV), so the threads overlap where the work is in them; the Python around them does not.
 
 Two modes (``mapping.wait_for_keyframes``):
 - offline (DSO's linearizeOperation, but with the feature mapping and the tracing beside tracking): no frame is

@@ -22,9 +22,9 @@ each half offers steps and decides nothing:
 ``--method direct`` runs the same flow without the feature half: a lost frame reinitializes at once (DSO)
 and a diverged one is reported and kept. The KLT baseline is a pipeline of its own and only passes through.
 
-With ``mapping.threaded`` (mapping_thread.py) a trusted frame of a proven map is only committed here; its tracing,
-and at a keyframe the direct and the feature mapping, run on the mapping thread while the next frames are tracked.
-Every other branch of the flowchart waits for the mapper first and then runs here, as in synchronous mode.
+With ``mapping.threaded`` (mapping_thread.py) a trusted frame of a proven map is only committed here; its tracing
+and, at a keyframe, the direct mapping run on the direct mapping thread, and the feature map grows on a thread of
+its own. Every other branch of the flowchart waits for both first and then runs here, as in synchronous mode.
 """
 
 from __future__ import annotations
@@ -208,7 +208,7 @@ class Odometry:
         if self.mode is _Mode.FEATURES:
             self._own_the_maps()
             self._track_features(frame, result)
-        elif self.direct.initialized:
+        elif self.direct.initialized and not self._start_failed(frame, result):
             if self.mapper is not None and self.config.mapping.wait_for_keyframes:
                 self.mapper.wait_keyframe()  # tracked against the newest keyframe, as synchronously
             self._track_direct(frame, result)
@@ -220,6 +220,14 @@ class Odometry:
             self.posed = (self.posed + [(frame.timestamp, result.T_world_cam)])[-2:]
         result.timings_ms["total"] = _ms_since(start)
         return result
+
+    def _start_failed(self, frame: DirectFrame, result: FrameResult) -> bool:
+        """Live, with a mapping thread: whether a keyframe it mapped failed the start on probation (start_check.py);
+        the start is then discarded here and the frame begins the next one."""
+        if self.mapper is None or self.direct.start_failure is None:
+            return False
+        self._own_the_maps()
+        return self.direct.discard_failed_start(frame, result)
 
     def _repeats_previous(self, raw_frame, result: FrameResult) -> bool:
         """A frame whose image is the previous frame's, bit for bit, is a camera or driver that stalled: it says
@@ -257,9 +265,11 @@ class Odometry:
 
     def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
         """The direct half accepts the frame and maps it; at a new direct keyframe the feature map grows
-        (Fig. 4). With a mapping thread, a trusted frame of a proven map is mapped there and None is returned;
-        anything else is mapped here, at once."""
-        if self.mapper is None or not self.direct.initialized or self.direct.on_probation:
+        (Fig. 4). With a mapping thread, a trusted frame is mapped there and None is returned; anything else is
+        mapped here, at once."""
+        # Offline, a start on probation is mapped here too: one that fails is discarded at the frame it fails at.
+        inline = not self.direct.initialized or (self.direct.on_probation and self.config.mapping.wait_for_keyframes)
+        if self.mapper is None or inline:
             keyframe = self.direct.accept(frame, tracking, result)
             self._grow_feature_map(keyframe, result)
             return keyframe
@@ -268,7 +278,7 @@ class Odometry:
         result.is_keyframe = make_keyframe
 
         def map_direct(mapped: FrameResult) -> MapSnapshot | None:
-            self.direct.map_frame(frame, tracking, make_keyframe, mapped)
+            self.direct.map_frame(frame, tracking, make_keyframe, mapped, discard_failed_start=False)
             if not make_keyframe:
                 return None
             if self.feature_mapper is not None:

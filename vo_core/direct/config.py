@@ -60,6 +60,10 @@ class TrackerConfig:
     scale_b: float = 1000.0  # SCALE_B
     retrack_threshold: float = 1.5  # setting_reTrackThreshold: accept a hypothesis within 1.5x last RMSE
     rotation_perturbation: float = 0.02  # trackNewCoarse: quaternion components +-0.02 (~2.3 degrees)
+    # trackNewCoarse's 26 rotations of the constant motion, tried when the first guesses fall short. Live runs
+    # (--realtime) leave them out (ours): each costs ~50 ms here, so a frame that needed all of them cost 1-2 s and
+    # the frames missed meanwhile made the next one as hard; FDMO's feature map recovers such a frame in ~70 ms.
+    rotation_hypotheses: bool = True
     # Ours: a frame further from the last tracked one than 1.5 times the interval between the last two comes after
     # missed frames (a driver's drop, --drop), one nearer than 1/1.5 of it after a jump: the motion hypotheses then
     # take the time into account (motion_model.py). Regular timestamps (jitter well under half an interval) never

@@ -47,13 +47,14 @@ def _rotation_perturbations(delta: float) -> list[np.ndarray]:
 
 
 def motion_hypotheses(
-    T_world_prev2: np.ndarray | None, T_world_prev1: np.ndarray, T_world_ref: np.ndarray, rotation_delta: float,
+    T_world_prev2: np.ndarray | None, T_world_prev1: np.ndarray, T_world_ref: np.ndarray, rotation_delta: float | None,
     time_ratio: float | None = None,
 ) -> list[np.ndarray]:
     """Guesses of T_frame_ref for the next frame, most likely first.
 
     ``T_world_prev1`` / ``T_world_prev2`` are the last and second-to-last tracked frames, ``T_world_ref`` the
-    reference keyframe. Without a second-to-last frame only zero motion is tried.
+    reference keyframe. Without a second-to-last frame only zero motion is tried; without ``rotation_delta`` no
+    rotation of the constant motion.
 
     ``time_ratio``: the time since the last tracked frame over the time between the last two, given where the
     timestamps say frames were missed (ours: DSO assumes every frame arrives). Below 1, the last motion spanned
@@ -75,7 +76,8 @@ def motion_hypotheses(
         T_prev1_ref,  # zero motion
         np.eye(4),  # zero motion from the keyframe
     ]
-    hypotheses += [constant @ se3(R, np.zeros(3)) for R in _rotation_perturbations(rotation_delta)]
+    if rotation_delta is not None:
+        hypotheses += [constant @ se3(R, np.zeros(3)) for R in _rotation_perturbations(rotation_delta)]
     if time_ratio is not None and time_ratio > 1.0:
         hypotheses.append(_scaled(T_frame_prev1, time_ratio) @ T_prev1_ref)
     return hypotheses

@@ -286,7 +286,8 @@ class DirectOdometry:
             previous2 = self.history[-2].T_world_cam if len(self.history) >= 2 else None
             hypotheses = motion_hypotheses(
                 previous2, self.history[-1].T_world_cam, reference.T_world_cam,
-                self.config.tracker.rotation_perturbation, time_ratio,
+                self.config.tracker.rotation_perturbation if self.config.tracker.rotation_hypotheses else None,
+                time_ratio,
             )
         best, prior_rmse, achieved, tried = self._best_hypothesis(
             reference.tracker, frame.pyramid, hypotheses, self.history[-1].affine, frame.exposure
@@ -345,10 +346,12 @@ class DirectOdometry:
             self.config.keyframes,
         )
 
-    def map_frame(self, frame: DirectFrame, tracking: DirectTracking, make_keyframe: bool,
-                  result: FrameResult) -> Keyframe | None:
+    def map_frame(self, frame: DirectFrame, tracking: DirectTracking, make_keyframe: bool, result: FrameResult,
+                  discard_failed_start: bool = True) -> Keyframe | None:
         """The mapping half of ``accept`` (DSO's makeNonKeyFrame / makeKeyFrame): the window's immature points
-        traced in the committed frame, and the keyframe when ``make_keyframe`` (returned; None otherwise)."""
+        traced in the committed frame, and the keyframe when ``make_keyframe`` (returned; None otherwise). A start
+        on probation that fails at this keyframe is discarded here, or, off the tracking thread
+        (``discard_failed_start`` False), left to ``discard_failed_start`` at the next frame."""
         T_world_cam, affine = tracking.T_world_cam, tracking.result.affine
         start = time.perf_counter()
         self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
@@ -358,10 +361,18 @@ class DirectOdometry:
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
-        if self.start_failure is not None:
+        if self.start_failure is not None and discard_failed_start:
             self._discard_start(frame, result)
             return None
         return keyframe
+
+    def discard_failed_start(self, frame: DirectFrame, result: FrameResult) -> bool:
+        """Where a keyframe mapped off the tracking thread failed the start on probation: the start is discarded
+        and the initializer starts again from this frame (which gets no pose). Returns whether it was."""
+        if self.start_failure is None:
+            return False
+        self._discard_start(frame, result)
+        return True
 
     def reinitialize(self, T_world_origin: np.ndarray, keep_window: bool = False) -> None:
         """Initialize again from the next frame given to ``initialize``; the new map's first frame sits at
