@@ -299,6 +299,8 @@ class _Statistics:
             self.late += int(event.details["count"])
         elif event.kind is EventKind.FRAMES_DROPPED:
             self.dropped += int(event.details["count"])
+        if event.kind is EventKind.INITIALIZATION_REJECTED:
+            self.tracked -= len(event.details.get("retracted", []))  # their poses were taken back
         if event.kind is EventKind.FRAMES_JUMPED:
             self.jumps.append({key: event.details[key] for key in ("from_frame", "to_frame")})
 

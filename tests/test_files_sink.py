@@ -151,12 +151,32 @@ def test_frames_played_again_keep_one_line_per_timestamp_their_latest_outcome(si
 
 def test_poses_retracted_by_a_rejected_start_leave_the_trajectory(sink):
     """A start found wrong after the hand-over takes back the poses its map gave (INITIALIZATION_REJECTED's
-    ``retracted``): trajectory.tum must not mix that map with the next one."""
+    ``retracted``): trajectory.tum must not mix that map with the next one, keyframes.tum loses its keyframe,
+    frames.csv says those frames untracked, and the files go on growing after the rewrite."""
     feed(sink)
-    retracted = [result(i).timestamp for i in (3, 4)]
+    retracted = [result(i).timestamp for i in (2, 3, 4)]
     sink.on_event(Event(EventKind.INITIALIZATION_REJECTED, 5, result(5).timestamp,
                         {"reason": "test", "retracted": retracted}))
     kept = read_trajectory(sink.out_dir / TRAJECTORY_FILE)
-    assert len(kept) == 4
+    assert len(kept) == 3
     assert not np.isin(np.array(retracted), kept.timestamps).any()
     assert sink.estimate().timestamps.tolist() == kept.timestamps.tolist()
+    sink.on_frame(None, result(8))
+    frames = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
+    assert frames["frame"].tolist() == list(range(9))
+    assert frames["tracked"].tolist() == [0, 0, 0, 0, 0, 1, 1, 1, 1]
+    assert frames["is_keyframe"].tolist() == [0, 0, 0, 0, 0, 1, 0, 0, 0]
+    sink.write_keyframes({2: pose(2), 5: pose(5)})  # the odometry's every keyframe ever, the retracted one too
+    assert read_trajectory(sink.out_dir / KEYFRAMES_FILE).timestamps.tolist() == pytest.approx([result(5).timestamp])
+
+
+def test_the_run_statistics_do_not_count_retracted_poses_as_tracked():
+    from app.pipeline import _Statistics
+
+    statistics = _Statistics()
+    for i in range(6):
+        statistics.on_frame(None, result(i, tracked=i >= 1))
+    statistics.on_event(Event(EventKind.INITIALIZATION_REJECTED, 5, result(5).timestamp,
+                              {"reason": "test", "retracted": [result(i).timestamp for i in (1, 2, 3)]}))
+    counts = statistics.counts()
+    assert counts["tracked_frames"] == 2 and counts["tracked_fraction"] == pytest.approx(2 / 6)

@@ -7,8 +7,10 @@ at the start.
 A backward jump (``--jump``) plays frames again. frames.csv and events.jsonl keep a line per processing, in the
 order of processing; the TUM files keep one line per timestamp, in time order (TUM readers and evo require
 increasing timestamps): the outcome of the frame's latest processing, so a replayed frame's line is its new pose,
-and a frame that got no pose when played again loses its line. At the end, metrics.json, the final keyframes.tum, the ground truth of the run (groundtruth.tum) and
-the maps (map_direct.ply, map_features.ply) replace the old files atomically (write, then rename).
+and a frame that got no pose when played again loses its line. Poses the odometry takes back (a start found wrong,
+INITIALIZATION_REJECTED) leave the TUM files, and frames.csv says their frames untracked. At the end, metrics.json,
+the final keyframes.tum, the ground truth of the run (groundtruth.tum) and the maps (map_direct.ply,
+map_features.ply) replace the old files atomically (write, then rename).
 """
 
 from __future__ import annotations
@@ -52,11 +54,13 @@ class FilesSink:
         self._files: dict[str, Any] = {}
         self._trajectory: PoseLines | None = None
         self._keyframes: PoseLines | None = None
+        self._retracted: set[float] = set()  # timestamps whose poses the odometry took back
 
     def begin(self, config: Config) -> None:
         """Create the folder, start the line files afresh (each pass over the sequence) and write config.yaml."""
         self._close_files()
         self._timestamps.clear()
+        self._retracted.clear()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
         self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in (FRAMES_FILE, EVENTS_FILE)}
@@ -75,13 +79,38 @@ class FilesSink:
         self._timestamps[result.frame_index] = result.timestamp
         self._files[FRAMES_FILE].write(frames_line(result) + "\n")
         self._trajectory.record(result.timestamp, result.T_world_cam)
+        if result.T_world_cam is not None:
+            self._retracted.discard(result.timestamp)  # posed again (a replayed frame)
         if result.is_keyframe:
             self._keyframes.record(result.timestamp, result.T_world_cam)
 
     def on_event(self, event: Event) -> None:
         self._files[EVENTS_FILE].write(to_json(event.to_json_dict()) + "\n")
         if event.kind is EventKind.INITIALIZATION_REJECTED:
-            self._trajectory.remove(event.details.get("retracted", []))  # posed in a map found wrong
+            self._retract(event.details.get("retracted", []))
+
+    def _retract(self, timestamps) -> None:
+        """Poses taken back (posed in a start found wrong): their lines leave the TUM files, and their frames.csv
+        lines say untracked (rewritten at once, as the TUM files are)."""
+        timestamps = [float(t) for t in timestamps]
+        self._trajectory.remove(timestamps)
+        self._keyframes.remove(timestamps)
+        self._retracted.update(timestamps)
+        self._untrack_frames({f"{t:.9f}" for t in timestamps})
+
+    def _untrack_frames(self, timestamps: set[str]) -> None:
+        if not timestamps:
+            return
+        path = self.out_dir / FRAMES_FILE
+        self._files[FRAMES_FILE].close()
+        lines = path.read_text().splitlines()
+        for i, line in enumerate(lines[1:], start=1):
+            fields = line.split(",")
+            if fields[1] in timestamps:
+                fields[2] = fields[3] = "0"  # tracked, is_keyframe
+                lines[i] = ",".join(fields)
+        write_text_atomically(path, "".join(line + "\n" for line in lines))
+        self._files[FRAMES_FILE] = open(path, "a", buffering=1)
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass  # the keyframes' final poses are written by write_keyframes at the end
@@ -93,7 +122,8 @@ class FilesSink:
 
     def write_keyframes(self, keyframe_poses: dict[int, np.ndarray]) -> None:
         """Replace keyframes.tum by the keyframes' latest poses (a window optimization moves them)."""
-        dated = sorted((self._timestamps[i], i) for i in keyframe_poses if i in self._timestamps)
+        dated = sorted((self._timestamps[i], i) for i in keyframe_poses
+                       if i in self._timestamps and self._timestamps[i] not in self._retracted)
         if dated:
             self._keyframes.replace({timestamp: keyframe_poses[i] for timestamp, i in dated})
 
