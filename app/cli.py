@@ -1,8 +1,9 @@
 """The command line: ``fdmo run | eval | info | plot | vocabulary | experiment | bench``.
 
-    fdmo run [SOURCE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE] [--set key=value ...]
-             [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...] [--gt FILE] [--realtime]
-             [--rrd FILE | --no-rrd] [--viser [--host ADDRESS] [--port P]] [--quiet]
+    fdmo run [SOURCE | camera:N --camera FILE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE]
+             [--set key=value ...] [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...]
+             [--gt FILE] [--realtime] [--mapping sync|threaded] [--rrd FILE | --no-rrd]
+             [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
     fdmo vocabulary train IMAGE... --out FILE [--branching K] [--depth L] [--seed S]
@@ -96,8 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_OneLineParser)
 
     run = commands.add_parser("run", help="run the odometry over a sequence and write the result files")
-    run.add_argument("source", nargs="?", help="dataset folder or video, or synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] "
-                                                "(vo_core.synthetic; default: the bundled sequence)")
+    run.add_argument("source", nargs="?",
+                     help="dataset folder or video, synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] (vo_core.synthetic), or "
+                          "camera:N (a live camera, with --camera FILE); default: the bundled sequence")
     run.add_argument("--out", type=Path, help="results folder (default: results/<sequence>_<time>/)")
     run.add_argument("--method", choices=METHODS, help=f"overrides the configuration's method (default: {Config.method})")
     run.add_argument("--config", type=Path, help="YAML configuration (the format of config.yaml)")
@@ -185,25 +187,54 @@ def _add_source_options(parser: argparse.ArgumentParser) -> None:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from app.pipeline import check_method, open_source, run_sequence
+    from app.live import LiveCamera, LivePlayer, live_device, live_undistorter
+    from app.pipeline import check_method, open_source
     from app.player import Player
 
+    device = None if args.source is None else live_device(args.source)
+    if device is not None:
+        _check_live_options(args)
+        args.realtime = True  # a camera delivers its frames whether or not the odometry is ready for them
     overrides = [*_live_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
     config = load_config(args.config, overrides)
+    if device is not None:
+        undistorter = live_undistorter(device, args.camera, config.dataset.undistort_output)
+        check_method(config, undistorter.camera)
+        _warm_up(config, undistorter.camera, args.quiet)
+        with contextlib.closing(LiveCamera(device, undistorter)) as camera:
+            print(f"fdmo: live from {args.source} ({camera.camera.width}x{camera.camera.height} rectified); Ctrl-C "
+                  "ends the run", file=sys.stderr)
+            return _run_and_report(args, config, camera, LivePlayer(camera), show_progress=False)
     source = DEFAULT_SEQUENCE if args.source is None else args.source
     sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
-    out_dir = args.out or _default_out_dir(sequence.name)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"--out {out_dir}: exists and is not a folder")
     check_method(config, sequence.camera)
     _check_drops_and_jumps(args.drops, args.jumps, sequence.indices)
     if args.realtime:
         _warm_up(config, sequence.camera, args.quiet)
     player = Player(sequence, args.drops, args.jumps, realtime=args.realtime)
+    return _run_and_report(args, config, sequence, player, show_progress=not args.quiet)
+
+
+def _check_live_options(args: argparse.Namespace) -> None:
+    """What a live camera cannot do: it has no frames to cut, drop or jump to, no layout and no ground truth, and
+    the page's playback controls are for recorded sequences."""
+    given = {"--start": args.start, "--end": args.end, "--drop": args.drops, "--jump": args.jumps,
+             "--format": args.layout, "--gt": args.gt, "--viser": args.viser}
+    refused = [option for option, value in given.items() if value not in (None, [], False)]
+    if refused:
+        raise InputError(f"{args.source}: {', '.join(refused)} cannot be used with a live camera")
+
+
+def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, show_progress: bool) -> int:
+    from app.pipeline import run_sequence
+
+    out_dir = args.out or _default_out_dir(sequence.name)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a folder")
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
     try:
         summary = _until_signalled(player, lambda: run_sequence(
-            sequence, config, out_dir, sinks, player=player, show_progress=not args.quiet, keep_alive=args.viser))
+            sequence, config, out_dir, sinks, player=player, show_progress=show_progress, keep_alive=args.viser))
     finally:
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
