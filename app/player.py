@@ -233,7 +233,9 @@ class Player:
                     return
                 cursor = self._move(cursor, last, script, on_event)
                 if self.realtime:
-                    cursor = self._skip_missed(cursor, last, on_event)
+                    skipped_from, cursor = cursor, self._skip_missed(cursor, last, on_event)
+                    if script.passed_over(self._indices[skipped_from:cursor], self):
+                        cursor = self._move(cursor, last, script, on_event)
                 if cursor >= len(self._indices):
                     with self._condition:
                         self._finished = True
@@ -356,6 +358,23 @@ class _Script:
     def handed_out(self, frame: int, player: Player) -> None:
         if self.jumps.get(frame):
             player.jump_to(self.jumps[frame].popleft(), source="script")
+
+    def passed_over(self, frames: list[int], player: Player) -> bool:
+        """Real time: ``frames`` arrived while the odometry was busy and were dropped as late. The moves scripted at
+        them still happen, as if the frames had been reached or handed out: a drop hides what it covers beyond
+        them (one wholly inside them is what they already are: dropped, and announced as late), a jump jumps.
+        Returns whether a move was requested."""
+        requested = False
+        for position, frame in enumerate(frames):
+            while self.drops.get(frame):
+                beyond = self.drops[frame].popleft() - (len(frames) - position)
+                if beyond > 0:
+                    player.drop_next(beyond, source="script")
+                    requested = True
+            while self.jumps.get(frame):
+                player.jump_to(self.jumps[frame].popleft(), source="script")
+                requested = True
+        return requested
 
 
 class _Reader:

@@ -307,3 +307,30 @@ def test_playing_time_leaves_out_pauses():
     while consumer.next() is not None:
         pass
     assert 0.4 < player.playing_time() < 0.8  # the 0.5 s pause is not in it
+
+
+def late_start(player: Player) -> tuple[list[int], list]:
+    """A tracker that spends 7 frame intervals on the first frame, then keeps up: frames 1-6 (at least) arrive while
+    it is busy and are dropped as late."""
+    seen, events = [], []
+    for frame in player.play(on_event=events.append):
+        seen.append(frame.index)
+        if frame.index == 0:
+            time.sleep(7 / RATE_HZ)
+    return seen, events
+
+
+def test_realtime_a_scripted_drop_at_a_late_frame_still_hides_what_it_covers():
+    seen, events = late_start(Player(frames(30), drops=[(5, 10)], realtime=True))
+    assert seen[0] == 0 and not set(seen) & set(range(1, 15))  # 5-14 hidden by the drop, 1-6 (or more) late
+    assert seen[1:] == list(range(15, 30))
+    dropped = [(event.details["source"], event.details["count"]) for event in events]
+    assert [source for source, _ in dropped] == ["realtime", "script"]
+    assert sum(count for _, count in dropped) == 14
+
+
+def test_realtime_a_scripted_jump_at_a_late_frame_still_jumps():
+    seen, events = late_start(Player(frames(30), jumps=[(3, 20)], realtime=True))
+    assert seen == [0, *range(20, 30)]
+    assert [event.kind for event in events] == [EventKind.FRAMES_DROPPED, EventKind.FRAMES_JUMPED]
+    assert events[1].details["source"] == "script" and events[1].details["to_frame"] == 20
