@@ -63,8 +63,7 @@ class MappingThread:
         self.max_queued_frames = max_queued_frames
         self._queue: deque[_Queued] = deque()
         self._finished: list[MappedFrame] = []
-        self._busy = False  # a job is running
-        self._keyframe_queued = False  # a keyframe job is queued or running
+        self._running: _Queued | None = None  # the job being mapped
         self._untraced = 0  # frames left untraced while catching up, not yet reported
         self._error: BaseException | None = None
         self._stopping = False
@@ -76,7 +75,10 @@ class MappingThread:
     def keyframe_pending(self) -> bool:
         """Whether a keyframe is queued or being mapped (tracking asks for no other meanwhile)."""
         with self._condition:
-            return self._keyframe_queued
+            return self._keyframe_queued()
+
+    def _keyframe_queued(self) -> bool:
+        return (self._running is not None and self._running.keyframe) or any(q.keyframe for q in self._queue)
 
     def submit(self, frame_index: int, timestamp: float, job: Job, keyframe: bool = False,
                may_skip: bool = False) -> None:
@@ -84,16 +86,15 @@ class MappingThread:
             self._raise_error()
             result = FrameResult(frame_index, timestamp, None, tracked=True)
             self._queue.append(_Queued(result, job, keyframe, may_skip))
-            self._keyframe_queued |= keyframe
             self._condition.notify_all()
 
     def wait_idle(self) -> None:
         """Until every queued job is done: the maps are then the tracking thread's to change."""
-        self._wait(lambda: not self._queue and not self._busy)
+        self._wait(lambda: not self._queue and self._running is None)
 
     def wait_keyframe(self) -> None:
         """Until the pending keyframe is mapped and its reference published."""
-        self._wait(lambda: not self._keyframe_queued)
+        self._wait(lambda: not self._keyframe_queued())
 
     def _wait(self, done: Callable[[], bool]) -> None:
         with self._condition:
@@ -128,21 +129,20 @@ class MappingThread:
                     self._untraced += 1
                     self._condition.notify_all()
                     continue
-                self._busy = True
+                self._running = queued
                 if self._untraced:
                     self._report_untraced(queued.result)
             try:
                 snapshot = queued.job(queued.result)
             except BaseException as error:  # raised again on the tracking thread
                 with self._condition:
-                    self._error, self._busy = error, False
+                    self._error, self._running = error, None
                     self._queue.clear()
                     self._condition.notify_all()
                 return
             with self._condition:
                 self._finished.append(MappedFrame(queued.result, snapshot))
-                self._busy = False
-                self._keyframe_queued = any(q.keyframe for q in self._queue)
+                self._running = None
                 self._condition.notify_all()
 
     def _report_untraced(self, result: FrameResult) -> None:

@@ -139,9 +139,13 @@ class Odometry:
         finished = self.mapper.take_finished()
         if self.feature_mapper is not None:
             finished += self.feature_mapper.take_finished()
+        maps_changed = False
         for mapped in finished:
             for event in mapped.result.events:
                 self.bus.event(event)
+            if mapped.snapshot is not None:
+                half = "features" if mapped.snapshot.direct_points_world is None else "direct"
+                self.snapshots[half], maps_changed = mapped.snapshot, True
             if result is None:
                 continue
             for stage, ms in mapped.result.timings_ms.items():
@@ -149,11 +153,7 @@ class Odometry:
             if mapped.result.scale_ratio is not None:
                 result.scale_ratio = mapped.result.scale_ratio
                 result.mean_inverse_depth = mapped.result.mean_inverse_depth
-        for mapped in finished:
-            if mapped.snapshot is not None:
-                half = "features" if mapped.snapshot.direct_points_world is None else "direct"
-                self.snapshots[half] = mapped.snapshot
-        if not any(mapped.snapshot is not None for mapped in finished) or "direct" not in self.snapshots:
+        if not maps_changed or "direct" not in self.snapshots:
             return []
         features = self.snapshots.get("features", MapSnapshot())
         return [dataclasses.replace(self.snapshots["direct"], feature_points_world=features.feature_points_world,
@@ -261,7 +261,6 @@ class Odometry:
         result.divergence_ratio = judgement.ratio if np.isfinite(judgement.ratio) else None
         result.divergence_threshold = judgement.threshold
         return tracking, judgement
-
 
     def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
         """The direct half accepts the frame and maps it; at a new direct keyframe the feature map grows

@@ -109,8 +109,7 @@ class FilesSink:
             if fields[1] in timestamps:
                 fields[2] = fields[3] = "0"  # tracked, is_keyframe
                 lines[i] = ",".join(fields)
-        write_text_atomically(path, "".join(line + "\n" for line in lines))
-        self._files[FRAMES_FILE] = open(path, "a", buffering=1)
+        self._files[FRAMES_FILE] = rewritten_line_file(path, "".join(line + "\n" for line in lines))
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass  # the keyframes' final poses are written by write_keyframes at the end
@@ -212,8 +211,7 @@ class PoseLines:
     def _rewrite(self) -> None:
         self._handle.close()
         text = TUM_HEADER + "".join(self._lines[t][1] + "\n" for t in sorted(self._lines))
-        write_text_atomically(self.path, text)
-        self._handle = open(self.path, "a", buffering=1)
+        self._handle = rewritten_line_file(self.path, text)
 
 
 def frames_line(result: FrameResult) -> str:
@@ -222,6 +220,12 @@ def frames_line(result: FrameResult) -> str:
               result.rmse_before, result.rmse_after, result.num_inliers)
     return ",".join("" if value is None else f"{value:.9g}" if isinstance(value, float) else str(value)
                     for value in values)
+
+
+def rewritten_line_file(path: Path, text: str):
+    """A line file (its handle closed) replaced by ``text`` atomically, then opened again to grow line by line."""
+    write_text_atomically(path, text)
+    return open(path, "a", buffering=1)
 
 
 def write_text_atomically(path: Path, text: str) -> None:
