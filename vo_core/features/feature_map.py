@@ -26,6 +26,7 @@ from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector, InvertedIndex
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.geometry.reprojection import sum_by
 
 NO_POINT = -1
 # Dead point rows are dropped once they are more than half of at least this many (ours: ids stay stable in
@@ -250,11 +251,11 @@ class FeatureMap:
         point (ORB-SLAM2 MapPoint::UpdateNormalAndDepth), for the visibility test of ``project_points``."""
         table = self.observations()
         wanted = np.isin(table.point, point_ids)
-        centres = np.array([self.keyframes[int(k)].centre for k in table.keyframe[wanted]]).reshape(-1, 3)
+        observers, observer_of = np.unique(table.keyframe[wanted], return_inverse=True)
+        centres = np.array([self.keyframes[int(k)].centre for k in observers]).reshape(-1, 3)[observer_of]
         rays = self.points.position[table.point[wanted]] - centres
         rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
-        sums = np.zeros((len(self.points), 3))
-        np.add.at(sums, table.point[wanted], rays)
+        sums = sum_by(table.point[wanted], rays, len(self.points))
         norms = np.linalg.norm(sums[point_ids], axis=1, keepdims=True)
         self.points.normal[point_ids] = np.where(norms > 0, sums[point_ids] / np.maximum(norms, 1e-12), 0.0)
 

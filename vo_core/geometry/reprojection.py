@@ -60,11 +60,6 @@ def huber_cost_and_weights(errors: np.ndarray, k: float) -> tuple[float, np.ndar
     return float(cost), weights
 
 
-def huber_costs(errors: np.ndarray, k: float) -> np.ndarray:
-    """rho(e) of every error, the terms of huber_cost_and_weights' sum."""
-    return np.where(errors <= k, errors**2, 2.0 * k * errors - k**2)
-
-
 def level_information(level: np.ndarray, scale_factor: float) -> np.ndarray:
     """Weight (information, 1/sigma^2) of a feature found at pyramid level n: Sf^(-2n).
 

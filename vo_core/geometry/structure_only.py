@@ -7,8 +7,10 @@ point X_j minimizes its own sum over the keyframes observing it (eq. 3),
     argmin_X sum_i rho(e_ij^T W_i e_ij),  e_ij = pi(R_i X + t_i) - x_ij,
 
 by Gauss-Newton with the closed-form 3x3 update X <- X - (J^T W J)^-1 J^T W e (eq. 4), J stacking the 2x3
-reprojection Jacobians pi'(R_i X + t_i) R_i (eq. 5) and W the level weights (eq. 6). All points are solved at
-once: per-observation blocks summed per point with bincount, then one batched 3x3 solve.
+reprojection Jacobians pi'(R_i X + t_i) R_i (eq. 5) and W the level weights (eq. 6). The points are solved one
+after another by a compiled kernel over each point's observations (they share nothing): a few hundred floating
+point operations per observation, where array code spent its time allocating (L, 3, 3) temporaries, and free of
+the interpreter's lock, so the feature mapper's thread runs beside tracking.
 
 Robustness and outliers follow ORB-SLAM2's local bundle adjustment (Optimizer::LocalBundleAdjustment, which
 FDMO's structure-only step replaces): the first half of the iterations under a Huber kernel, then observations
@@ -21,18 +23,11 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.reprojection import (
-    CHI2_2D_95,
-    ORB_SCALE_FACTOR,
-    huber_costs,
-    level_information,
-    project_points,
-    projection_jacobians,
-    sum_by,
-)
+from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information
 
 ITERATIONS = 10  # FDMO 4.3: "limited the number of iterations ... to ten", no gain beyond
 HUBER_PX = float(np.sqrt(CHI2_2D_95))  # ORB-SLAM2 thHuber2D = sqrt(5.991), on the level-normalized error
@@ -40,7 +35,8 @@ MIN_OBSERVATIONS = 2  # a point seen once is free along its ray: its 3x3 system 
 DAMPING_START = 1e-3  # Marquardt damping (relative to the diagonal) for a point whose plain step failed
 DAMPING_UP = 10.0
 DAMPING_DOWN = 0.1
-DIAGONAL_FLOOR = 1e-12  # relative to the trace: keeps the batched solve defined for a near-degenerate point
+DIAGONAL_FLOOR = 1e-12  # relative to the trace: keeps the 3x3 solve defined for a near-degenerate point
+NO_HUBER = -1.0  # the kernel's "no robust kernel" (the second half of the iterations)
 
 
 class PointRefinement(NamedTuple):
@@ -48,58 +44,6 @@ class PointRefinement(NamedTuple):
     inlier: np.ndarray  # (L,) bool: observation within the chi-square bound, in front of its camera
     errors_px: np.ndarray  # (L,) reprojection error of each observation at the final positions (level-0 pixels)
     in_front: np.ndarray  # (M,) bool: False for a point behind (or at) the centre of a camera that observes it
-
-
-class _Observations:
-    """The fixed half of the problem: each observation's camera (world-to-camera), pixel and weight."""
-
-    def __init__(self, camera, T_world_cams, obs_point, obs_pose, obs_uv, obs_level, scale_factor, num_points):
-        T_world_cams = np.asarray(T_world_cams, float)
-        R_cam_world = T_world_cams[:, :3, :3].transpose(0, 2, 1)
-        t_cam_world = -np.einsum("fij,fj->fi", R_cam_world, T_world_cams[:, :3, 3])
-        self.camera = camera
-        self.R = R_cam_world[obs_pose]  # (L, 3, 3): R_KF_i of eq. 5, one per observation
-        self.t = t_cam_world[obs_pose]
-        self.point = np.asarray(obs_point)
-        self.uv = np.asarray(obs_uv, float)
-        self.information = level_information(obs_level, scale_factor)  # eq. 6, see level_information
-        self.num_points = num_points
-
-    def residuals(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(camera-frame points (L, 3), residuals e = pi(R X + t) - x (L, 2))."""
-        p = np.einsum("lij,lj->li", self.R, points[self.point]) + self.t
-        return p, project_points(self.camera, p) - self.uv
-
-    def normalized_squared(self, p: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """e^T W e of each observation (chi-square units); inf behind the camera or where not finite."""
-        chi2 = self.information * np.sum(e**2, axis=1)
-        return np.where((p[:, 2] > 0) & np.isfinite(chi2), chi2, np.inf)
-
-    def point_costs(self, p: np.ndarray, e: np.ndarray, active: np.ndarray, huber: float | None) -> np.ndarray:
-        """Per point, the (robust) cost of its active observations: (M,)."""
-        chi2 = self.normalized_squared(p, e)
-        terms = chi2 if huber is None else huber_costs(np.sqrt(chi2), huber)
-        terms = np.where(active, terms, 0.0)
-        # A point gone behind a camera has an infinite cost; summed by bincount it is counted apart, not as inf.
-        infinite = np.bincount(self.point, weights=~np.isfinite(terms), minlength=self.num_points)
-        costs = np.bincount(self.point, weights=np.where(np.isfinite(terms), terms, 0.0), minlength=self.num_points)
-        return np.where(infinite > 0, np.inf, costs)
-
-    def normal_equations(
-        self, p: np.ndarray, e: np.ndarray, active: np.ndarray, huber: float | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """J^T W J (M, 3, 3) and J^T W e (M, 3) of eq. 4 per point, W = level information x Huber's IRLS weight."""
-        J = projection_jacobians(self.camera, p) @ self.R  # eq. 5
-        # Behind the camera the projection's derivative points nowhere useful: such an observation adds nothing.
-        weight = np.where(active & (p[:, 2] > 0), self.information, 0.0)
-        if huber is not None:
-            error = np.sqrt(self.normalized_squared(p, e))
-            weight = weight * np.where(error <= huber, 1.0, huber / np.maximum(error, 1e-12))
-        weight = np.where(np.isfinite(weight), weight, 0.0)
-        JtW = J.transpose(0, 2, 1) * weight[:, None, None]
-        H = sum_by(self.point, JtW @ J, self.num_points)
-        g = sum_by(self.point, (JtW @ np.nan_to_num(e)[:, :, None])[:, :, 0], self.num_points)
-        return H, g
 
 
 def refine_points(
@@ -122,59 +66,138 @@ def refine_points(
 
     A point moves only while it has two or more observations in use (all of them in the robust first half, its
     inliers in the second): seen once, its position along the ray is not determined."""
-    observations = _Observations(
-        camera, T_world_cams, obs_point, obs_pose, obs_uv, obs_level, scale_factor, len(points_world)
-    )
-    points = np.array(points_world, dtype=float)
-    active = np.ones(len(observations.point), bool)
-    robust_iterations = (iterations + 1) // 2  # ORB-SLAM2 local BA: robust first, then the inliers alone
-    points = _gauss_newton(observations, points, active, robust_iterations, huber_px)
-    active = _inliers(observations, points, chi2)
-    points = _gauss_newton(observations, points, active, iterations - robust_iterations, None)
-    p, e = observations.residuals(points)
-    behind = np.bincount(observations.point, weights=(p[:, 2] <= 0).astype(float), minlength=len(points))
-    return PointRefinement(points, _inliers(observations, points, chi2), np.linalg.norm(e, axis=1), behind == 0)
+    T_world_cams = np.asarray(T_world_cams, float).reshape(-1, 4, 4)
+    R_cam_world = np.ascontiguousarray(T_world_cams[:, :3, :3].transpose(0, 2, 1))
+    t_cam_world = -np.einsum("fij,fj->fi", R_cam_world, T_world_cams[:, :3, 3])
+    obs_point = np.asarray(obs_point, np.int64)
+    order = np.argsort(obs_point, kind="stable")  # each point's observations side by side
+    first_obs = np.searchsorted(obs_point[order], np.arange(len(points_world) + 1))
+    points = np.array(points_world, dtype=float).reshape(-1, 3)
+    inlier, errors_px, in_front = _refine(
+        points, first_obs, np.asarray(obs_pose, np.int64)[order], np.asarray(obs_uv, float).reshape(-1, 2)[order],
+        level_information(np.asarray(obs_level)[order], scale_factor), R_cam_world, t_cam_world,
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy]), (iterations + 1) // 2, iterations, huber_px, chi2,
+    )  # ORB-SLAM2 local BA: robust first, then the inliers alone
+    unsorted_inlier, unsorted_errors = np.empty_like(inlier), np.empty_like(errors_px)
+    unsorted_inlier[order], unsorted_errors[order] = inlier, errors_px
+    return PointRefinement(points, unsorted_inlier, unsorted_errors, in_front)
 
 
-def _inliers(observations: _Observations, points: np.ndarray, chi2: float) -> np.ndarray:
-    """ORB-SLAM2's test of a monocular observation: e^T W e <= 5.991 and the point in front of the camera."""
-    p, e = observations.residuals(points)
-    return observations.normalized_squared(p, e) <= chi2
+@numba.njit(cache=True, nogil=True)
+def _refine(points, first_obs, pose, uv, information, R, t, intrinsics, robust_iterations, iterations, huber, chi2):
+    """Every point in place (``points``), its observations ``first_obs[j]:first_obs[j + 1]``. Returns each
+    observation's inlier flag and error (px) at the final positions, and each point's in-front flag."""
+    inlier = np.zeros(len(pose), np.bool_)
+    errors_px = np.zeros(len(pose))
+    in_front = np.ones(len(points), np.bool_)
+    for j in range(len(points)):
+        rows = np.arange(first_obs[j], first_obs[j + 1])
+        active = np.ones(len(rows), np.bool_)
+        _gauss_newton(points[j], rows, active, pose, uv, information, R, t, intrinsics, robust_iterations, huber)
+        for k, l in enumerate(rows):
+            active[k] = _observation(points[j], l, pose, uv, information, R, t, intrinsics)[0] <= chi2
+        _gauss_newton(points[j], rows, active, pose, uv, information, R, t, intrinsics,
+                      iterations - robust_iterations, NO_HUBER)
+        for l in rows:
+            chi2_l, _, _, z, e0, e1 = _observation(points[j], l, pose, uv, information, R, t, intrinsics)
+            inlier[l] = chi2_l <= chi2
+            errors_px[l] = np.sqrt(e0**2 + e1**2)
+            in_front[j] &= z > 0.0
+    return inlier, errors_px, in_front
 
 
-def _gauss_newton(
-    observations: _Observations, points: np.ndarray, active: np.ndarray, iterations: int, huber: float | None
-) -> np.ndarray:
-    """``iterations`` steps of eq. 4 for every point at once. A point whose step does not lower its cost stays
-    and retries with Marquardt damping (Gauss-Newton alone may overshoot on a point seen under little
-    parallax); the fixed point is the same, only the path is safer."""
-    counts = np.bincount(observations.point, weights=active.astype(float), minlength=len(points))
-    solvable = counts >= MIN_OBSERVATIONS
-    damping = np.zeros(len(points))  # 0: the plain Gauss-Newton update of eq. 4
-    p, e = observations.residuals(points)
-    cost = observations.point_costs(p, e, active, huber)
+@numba.njit(cache=True, nogil=True)
+def _observation(X, l, pose, uv, information, R, t, intrinsics):
+    """Observation ``l`` of point X: e^T W e (chi-square units; inf behind the camera or where not finite), the
+    point in its camera (R X + t) and the residual e = pi(R X + t) - x."""
+    f = pose[l]
+    x = R[f, 0, 0] * X[0] + R[f, 0, 1] * X[1] + R[f, 0, 2] * X[2] + t[f, 0]
+    y = R[f, 1, 0] * X[0] + R[f, 1, 1] * X[1] + R[f, 1, 2] * X[2] + t[f, 1]
+    z = R[f, 2, 0] * X[0] + R[f, 2, 1] * X[1] + R[f, 2, 2] * X[2] + t[f, 2]
+    if z == 0.0:
+        return np.inf, x, y, z, np.inf, np.inf
+    e0 = intrinsics[0] * x / z + intrinsics[2] - uv[l, 0]
+    e1 = intrinsics[1] * y / z + intrinsics[3] - uv[l, 1]
+    value = information[l] * (e0**2 + e1**2)
+    return (value if z > 0.0 and np.isfinite(value) else np.inf), x, y, z, e0, e1
+
+
+@numba.njit(cache=True, nogil=True)
+def _cost(X, rows, active, pose, uv, information, R, t, intrinsics, huber):
+    """The point's (robust) cost over its active observations; inf if one of them is behind its camera."""
+    total = 0.0
+    for k, l in enumerate(rows):
+        if not active[k]:
+            continue
+        chi2 = _observation(X, l, pose, uv, information, R, t, intrinsics)[0]
+        if not np.isfinite(chi2):
+            return np.inf
+        error = np.sqrt(chi2)
+        total += chi2 if huber < 0.0 or error <= huber else 2.0 * huber * error - huber**2
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _gauss_newton(X, rows, active, pose, uv, information, R, t, intrinsics, iterations, huber):
+    """``iterations`` steps of eq. 4 for one point, in place. A step that does not lower the cost is refused and
+    retried with Marquardt damping (Gauss-Newton alone may overshoot on a point seen under little parallax); the
+    fixed point is the same, only the path is safer."""
+    if np.count_nonzero(active) < MIN_OBSERVATIONS:
+        return
+    fx, fy = intrinsics[0], intrinsics[1]
+    damping = 0.0  # 0: the plain Gauss-Newton update of eq. 4
+    cost = _cost(X, rows, active, pose, uv, information, R, t, intrinsics, huber)
+    H, g, J = np.empty((3, 3)), np.empty(3), np.empty((2, 3))
     for _ in range(iterations):
-        H, g = observations.normal_equations(p, e, active, huber)
-        step = _solve_3x3(H, g, damping, solvable)
-        candidate = points - step  # eq. 4: X <- X - (J^T W J)^-1 J^T W e
-        candidate_p, candidate_e = observations.residuals(candidate)
-        candidate_cost = observations.point_costs(candidate_p, candidate_e, active, huber)
-        better = solvable & (candidate_cost < cost)
-        points = np.where(better[:, None], candidate, points)
-        cost = np.where(better, candidate_cost, cost)
-        damping = np.where(better, damping * DAMPING_DOWN, np.maximum(damping * DAMPING_UP, DAMPING_START))
-        p, e = observations.residuals(points)
-    return points
+        H[:], g[:] = 0.0, 0.0
+        for k, l in enumerate(rows):
+            chi2, x, y, z, e0, e1 = _observation(X, l, pose, uv, information, R, t, intrinsics)
+            if not active[k] or not z > 0.0:  # behind the camera the derivative points nowhere useful
+                continue
+            weight = information[l]
+            if huber >= 0.0:
+                error = np.sqrt(chi2)
+                weight *= 1.0 if error <= huber else huber / max(error, 1e-12)
+            if not np.isfinite(weight):
+                continue
+            f = pose[l]
+            e0 = e0 if np.isfinite(e0) else 0.0
+            e1 = e1 if np.isfinite(e1) else 0.0
+            for i in range(3):  # eq. 5: pi'(R X + t) R
+                J[0, i] = fx / z * (R[f, 0, i] - x / z * R[f, 2, i])
+                J[1, i] = fy / z * (R[f, 1, i] - y / z * R[f, 2, i])
+            for a in range(3):
+                g[a] += weight * (J[0, a] * e0 + J[1, a] * e1)
+                for b in range(3):
+                    H[a, b] += weight * (J[0, a] * J[0, b] + J[1, a] * J[1, b])
+        floor = DIAGONAL_FLOOR * (H[0, 0] + H[1, 1] + H[2, 2]) + np.finfo(np.float64).tiny
+        for a in range(3):
+            H[a, a] += damping * H[a, a] + floor
+        candidate = X - _solve_3x3(H, g)  # eq. 4: X <- X - (J^T W J)^-1 J^T W e
+        candidate_cost = _cost(candidate, rows, active, pose, uv, information, R, t, intrinsics, huber)
+        if candidate_cost < cost:
+            X[:] = candidate
+            cost = candidate_cost
+            damping *= DAMPING_DOWN
+        else:
+            damping = max(damping * DAMPING_UP, DAMPING_START)
 
 
-def _solve_3x3(H: np.ndarray, g: np.ndarray, damping: np.ndarray, solvable: np.ndarray) -> np.ndarray:
-    """(H + damping diag(H))^-1 g for every solvable point, zero for the others: one batched solve."""
-    step = np.zeros_like(g)
-    if not solvable.any():
-        return step
-    H, g, damping = H[solvable], g[solvable], damping[solvable]
-    diagonal = np.einsum("mii->mi", H)
-    floor = DIAGONAL_FLOOR * diagonal.sum(axis=1, keepdims=True) + np.finfo(float).tiny
-    H = H + (damping[:, None] * diagonal + floor)[:, :, None] * np.eye(3)
-    step[solvable] = np.linalg.solve(H, g[:, :, None])[:, :, 0]
-    return step
+@numba.njit(cache=True, nogil=True)
+def _solve_3x3(H, g):
+    """H^-1 g by the adjugate (H symmetric positive semi-definite, floored on its diagonal)."""
+    c00 = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
+    c01 = H[1, 2] * H[2, 0] - H[1, 0] * H[2, 2]
+    c02 = H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]
+    determinant = H[0, 0] * c00 + H[0, 1] * c01 + H[0, 2] * c02
+    if determinant == 0.0 or not np.isfinite(determinant):
+        return np.zeros(3)
+    inverse = np.empty((3, 3))
+    inverse[0, 0], inverse[1, 0], inverse[2, 0] = c00, c01, c02
+    inverse[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
+    inverse[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
+    inverse[1, 1] = H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0]
+    inverse[1, 2] = H[0, 2] * H[1, 0] - H[0, 0] * H[1, 2]
+    inverse[2, 1] = H[0, 1] * H[2, 0] - H[0, 0] * H[2, 1]
+    inverse[2, 2] = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+    return inverse @ g / determinant
