@@ -432,12 +432,14 @@ class Odometry:
 
     def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
         """Whether the alignment from the recovered pose ended where the motion model's did (within
-        ``same_optimum_px`` on the recovery's inliers) at a pose the feature map does not contradict."""
+        ``same_optimum_px`` on the recovery's inliers). Two starts that reach one optimum confirm it; the feature
+        pose then differs from it by the feature map's own error, which the images resolve better (teddy played
+        forward and back: at three recoveries both alignments met 0.4-0.6 cm from the truth, the feature poses
+        were 0.6-2 cm off and the direct pose explained only 29-59 % of their inliers)."""
         if not direct.converged:
             return False
         shift_px = self.features.reprojection_shift(outcome.pose, direct.T_world_cam, retracked.T_world_cam)
-        return shift_px <= self.config.fdmo.same_optimum_px and self.features.explained(
-            outcome.pose, direct.T_world_cam, outcome.features) >= self.config.fdmo.no_contradiction
+        return shift_px <= self.config.fdmo.same_optimum_px
 
     def _track_features(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the
