@@ -139,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--json", action="store_true", help="print JSON")
 
     info = commands.add_parser("info", help="what the loader finds in a dataset folder or video")
-    info.add_argument("source", help="dataset folder or video")
+    info.add_argument("source", help="dataset folder or video, or synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]")
     info.add_argument("--json", action="store_true", help="print JSON")
     _add_source_options(info)
 
@@ -427,9 +427,11 @@ def command_eval(args: argparse.Namespace) -> int:
 
 
 def command_info(args: argparse.Namespace) -> int:
-    from vo_core.datasets import open_sequence
+    from app.pipeline import open_source
+    from vo_core.config import DatasetConfig
 
-    sequence = open_sequence(Path(args.source), layout=args.layout, camera_file=args.camera, ground_truth_file=args.gt)
+    sequence = open_source(args.source, DatasetConfig(), layout=args.layout, camera_file=args.camera,
+                           ground_truth_file=args.gt)
     description = sequence.describe()
     print(json.dumps(description, indent=2) if args.json else _as_text(description))
     return EXIT_OK

@@ -525,6 +525,8 @@ def test_info_prints_what_the_loader_found(dataset, capsys):
     description = json.loads(run_cli(capsys, "info", dataset, "--json")[1])
     assert (description["layout"], description["frames"], description["resolution"]) == ("vamr", FRAMES, [WIDTH, HEIGHT])
     assert description["ground_truth"]["poses"] == FRAMES
+    synthetic = json.loads(run_cli(capsys, "info", "synthetic:forward:12:160x120", "--json")[1])
+    assert (synthetic["layout"], synthetic["frames"], synthetic["resolution"]) == ("synthetic", 12, [160, 120])
 
 
 def test_progress_bar_reports_rate_tracked_fraction_and_last_event():
