@@ -44,7 +44,8 @@ from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking,
 from vo_core.errors import InputError
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.geometry.lie import transform_points
+from vo_core.geometry.multiview import project_world
 from vo_core.init.registry import initializer_factory
 from vo_core.mapping_thread import MappingThread
 
@@ -575,11 +576,10 @@ class Odometry:
         if pose is None or outcome.features is None or len(pose.point_ids) == 0:
             return
         points = self.features.map.points.position[pose.point_ids]
-        points_ref = transform_points(se3_inverse(reference.T_world_cam), points)
-        front = points_ref[:, 2] > 0
-        uv_from = self.camera.project(points_ref[front])
+        uv_from, depth = project_world(self.camera, reference.T_world_cam, points)
+        front = depth > 0
         uv_to = outcome.features.features.uv[pose.feature_ids[front]]
-        result.matches_2d = np.hstack([uv_from, uv_to])
+        result.matches_2d = np.hstack([uv_from[front], uv_to])
         result.matches_inlier = pose.inlier[front]
 
 

@@ -35,8 +35,7 @@ from vo_core.features.matcher import match_by_bow, search_by_projection
 from vo_core.features.orb import Features, OrbExtractor, level_sigma2s
 from vo_core.features.vocabulary import Vocabulary
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, transform_points
-from vo_core.geometry.multiview import PnPConfig, estimate_pose
+from vo_core.geometry.multiview import PnPConfig, estimate_pose, reprojection_errors
 from vo_core.geometry.pose_only import refine_pose
 
 LOCAL, GLOBAL, ESTIMATE, TRACKING = "local", "global", "estimate", "tracking"  # where a pose came from
@@ -294,11 +293,9 @@ class Relocalizer:
         point_ids, feature_ids = pose.point_ids[pose.inlier], pose.feature_ids[pose.inlier]
         if len(point_ids) == 0:
             return 0.0
-        points_cam = transform_points(se3_inverse(T_world_cam), feature_map.points.position[point_ids])
-        front = points_cam[:, 2] > 0
-        error2 = np.full(len(point_ids), np.inf)
-        error2[front] = np.sum((self.camera.project(points_cam[front]) - frame.features.uv[feature_ids][front]) ** 2,
-                               axis=1)
+        error, depth = reprojection_errors(self.camera, T_world_cam, feature_map.points.position[point_ids],
+                                           frame.features.uv[feature_ids])
+        error2 = np.where(depth > 0, error**2, np.inf)
         bound = self.config.mapping.chi2_two_dof * self.sigma2[frame.features.level[feature_ids]]
         return float(np.mean(error2 <= bound))
 

@@ -38,14 +38,21 @@ def bearing_angles(
     return np.arccos(np.clip(np.sum(rays_a * rays_b, axis=1), -1.0, 1.0))
 
 
+def project_world(
+    camera: PinholeCamera, T_world_cam: np.ndarray, points_world: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels (N, 2), depth (N,)) of world points seen by the camera at ``T_world_cam``; a pixel is only
+    meaningful where its depth is positive (the caller checks)."""
+    points_cam = transform_points(se3_inverse(T_world_cam), points_world)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return camera.project(points_cam), points_cam[:, 2]
+
+
 def reprojection_errors(
     camera: PinholeCamera, T_world_cam: np.ndarray, points_world: np.ndarray, uv: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """(pixel distance (N,), depth (N,)) of world points projected into the camera at ``T_world_cam``."""
-    points_cam = transform_points(se3_inverse(T_world_cam), points_world)
-    depth = points_cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        projected = camera.project(points_cam)
+    projected, depth = project_world(camera, T_world_cam, points_world)
     return np.linalg.norm(projected - uv, axis=1), depth
 
 
