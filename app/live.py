@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from app.player import REALTIME_SOURCE
+from app.player import REALTIME_SOURCE, PlaybackState
 from vo_core.datasets.base import Frame, to_gray_u8
 from vo_core.datasets.calibration import load_camera_file
 from vo_core.errors import InputError
@@ -126,32 +126,16 @@ class LiveCamera:
         return Frame(self._count, stamp, self.undistorter.rectify(gray), path=f"{LIVE_PREFIX}:{self.device}")
 
 
-class LivePlayer:
+class LivePlayer(PlaybackState):
     """The newest frame of a ``LiveCamera`` each time the run asks (the interface of app.player.Player that a run
     uses). ``realtime``: frames the odometry had no time for are dropped, as with ``--realtime``."""
 
     realtime = True
 
     def __init__(self, camera: LiveCamera):
+        super().__init__()
         self.camera = camera
-        self._stopped = self._interrupted = self._finished = False
         self._started: float | None = None
-
-    @property
-    def finished(self) -> bool:
-        return self._finished
-
-    @property
-    def stopped(self) -> bool:
-        return self._stopped
-
-    @property
-    def interrupted(self) -> bool:
-        return self._interrupted
-
-    @property
-    def restart_requested(self) -> bool:
-        return False
 
     def wait_for_restart(self) -> bool:
         return False
@@ -161,9 +145,6 @@ class LivePlayer:
 
     def stop(self) -> None:
         self._stopped = True
-
-    def interrupt(self) -> None:
-        self._interrupted = self._stopped = True
 
     def play(self, on_event: Callable[[Event], None] | None = None) -> Iterator[Frame]:
         self._started = time.monotonic()

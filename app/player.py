@@ -52,50 +52,19 @@ class _Move:
     target: int | None = None  # a frame index (jumps to a given frame)
 
 
-class Player:
-    """Frames of ``sequence`` in order, with ``drops`` as ``(frame, count)`` and ``jumps`` as ``(frame, target)``.
+class PlaybackState:
+    """What a run asks of any source of frames (a player of a sequence, a live camera): whether its pass ended,
+    whether it was stopped or interrupted (a stop signal), whether a restart is wanted."""
 
-    ``sequence`` is a vo_core sequence (or anything with ``len``, iteration, ``indices``, ``timestamps`` and
-    ``cut(start)``): frames are read ahead from the cursor, and read afresh from wherever a move lands.
-    Frame numbers are ``Frame.index``, the positions in the original sequence (stable under --start/--end).
-    Iterate with ``for frame in player`` or ``player.play(on_event=callback)``; the callback receives one
-    FRAMES_DROPPED or FRAMES_JUMPED event per move, on the iterating thread, before the next frame is handed out.
-    A pass ends at the end of the sequence, on ``stop()``, or on ``request_restart()`` (then the caller starts
-    over: ``wait_for_restart()`` returns True and the next ``play()`` begins at the first frame).
-    """
-
-    def __init__(self, sequence, drops: Iterable[tuple[int, int]] = (), jumps: Iterable[tuple[int, int]] = (),
-                 realtime: bool = False):
-        self.sequence = sequence
-        self.realtime = realtime  # frames arrive at their timestamps; those the odometry misses are dropped
-        self.drops = _pairs(drops, "a drop needs a frame index >= 0 and a count >= 1", minimum=(0, 1))
-        self.jumps = _pairs(jumps, "a jump needs a frame index >= 0 and a target >= 0", minimum=(0, 0))
-        self._indices = [int(index) for index in sequence.indices]
-        self._timestamps = [float(timestamp) for timestamp in sequence.timestamps]
-        self._positions = {index: position for position, index in enumerate(self._indices)}
-        self._condition = threading.Condition()
-        self._paused = False
-        self._steps = 0  # frames allowed through while paused
-        self._speed = REAL_TIME if realtime else 0.0
-        self._moves: deque[_Move] = deque()
-        self._restart_requested = False
+    def __init__(self) -> None:
         self._stopped = False
         self._interrupted = False
         self._finished = False
-        self._pace_anchor: tuple[float, float] | None = None  # (wall clock, dataset timestamp)
-        self._played_s = 0.0  # playing time of the stretches that ended
-        self._playing_since: float | None = None  # start of the current stretch (None: not playing)
-        self._in_pass = False  # inside play(): the clock may run
-
-    # ------------------------------------------------------------------------------------ controls
-
-    @property
-    def paused(self) -> bool:
-        return self._paused
+        self._restart_requested = False
 
     @property
     def finished(self) -> bool:
-        """True once a pass has reached the end of the sequence (until a restart)."""
+        """True once a pass has reached the end of its frames (until a restart)."""
         return self._finished
 
     @property
@@ -110,6 +79,51 @@ class Player:
     @property
     def restart_requested(self) -> bool:
         return self._restart_requested
+
+    def interrupt(self) -> None:
+        """A stop for a signal handler. A handler runs in the main thread between two of its bytecodes, maybe
+        while that thread holds a lock: so no lock here, two plain assignments; every wait polls them."""
+        self._interrupted = True
+        self._stopped = True
+
+
+class Player(PlaybackState):
+    """Frames of ``sequence`` in order, with ``drops`` as ``(frame, count)`` and ``jumps`` as ``(frame, target)``.
+
+    ``sequence`` is a vo_core sequence (or anything with ``len``, iteration, ``indices``, ``timestamps`` and
+    ``cut(start)``): frames are read ahead from the cursor, and read afresh from wherever a move lands.
+    Frame numbers are ``Frame.index``, the positions in the original sequence (stable under --start/--end).
+    Iterate with ``for frame in player`` or ``player.play(on_event=callback)``; the callback receives one
+    FRAMES_DROPPED or FRAMES_JUMPED event per move, on the iterating thread, before the next frame is handed out.
+    A pass ends at the end of the sequence, on ``stop()``, or on ``request_restart()`` (then the caller starts
+    over: ``wait_for_restart()`` returns True and the next ``play()`` begins at the first frame).
+    """
+
+    def __init__(self, sequence, drops: Iterable[tuple[int, int]] = (), jumps: Iterable[tuple[int, int]] = (),
+                 realtime: bool = False):
+        super().__init__()
+        self.sequence = sequence
+        self.realtime = realtime  # frames arrive at their timestamps; those the odometry misses are dropped
+        self.drops = _pairs(drops, "a drop needs a frame index >= 0 and a count >= 1", minimum=(0, 1))
+        self.jumps = _pairs(jumps, "a jump needs a frame index >= 0 and a target >= 0", minimum=(0, 0))
+        self._indices = [int(index) for index in sequence.indices]
+        self._timestamps = [float(timestamp) for timestamp in sequence.timestamps]
+        self._positions = {index: position for position, index in enumerate(self._indices)}
+        self._condition = threading.Condition()
+        self._paused = False
+        self._steps = 0  # frames allowed through while paused
+        self._speed = REAL_TIME if realtime else 0.0
+        self._moves: deque[_Move] = deque()
+        self._pace_anchor: tuple[float, float] | None = None  # (wall clock, dataset timestamp)
+        self._played_s = 0.0  # playing time of the stretches that ended
+        self._playing_since: float | None = None  # start of the current stretch (None: not playing)
+        self._in_pass = False  # inside play(): the clock may run
+
+    # ------------------------------------------------------------------------------------ controls
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
 
     @property
     def speed(self) -> float:
@@ -171,12 +185,6 @@ class Player:
     def stop(self) -> None:
         """End playback for good (the pass ends at the next frame, a pending wait returns)."""
         self._update(_stopped=True)
-
-    def interrupt(self) -> None:
-        """``stop()`` for a signal handler. A handler runs in the main thread between two of its bytecodes, maybe
-        while that thread holds the player's lock: so no lock here, two plain assignments; every wait polls them."""
-        self._interrupted = True
-        self._stopped = True
 
     def wait_for_restart(self) -> bool:
         """Block until a restart is requested (True) or the player is stopped (False)."""
