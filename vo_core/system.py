@@ -241,7 +241,7 @@ class Odometry:
         _emit(result, EventKind.FRAME_REPEATED, {"same_as_frame": self.repeated_since})
         return True
 
-    def _track_direct(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+    def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
             # What follows may change the maps (a recovery, a restart): the mapper finishes first, and where it
@@ -250,10 +250,11 @@ class Odometry:
             if self.direct.reference is not tracking.reference:
                 tracking, judgement = self._track_and_judge(frame, result)
         if judgement.verdict is Verdict.TRUSTED:
-            return self._accept(frame, tracking, result)
-        if self.features is None:
-            return self._without_recovery(frame, tracking, judgement, result)
-        return self._recover(frame, tracking, judgement, result)
+            self._accept(frame, tracking, result)
+        elif self.features is None:
+            self._without_recovery(frame, tracking, judgement, result)
+        else:
+            self._recover(frame, tracking, judgement, result)
 
     def _track_and_judge(self, frame: DirectFrame, result: FrameResult) -> tuple[DirectTracking, Judgement]:
         tracking = self.direct.track(frame)
@@ -263,16 +264,14 @@ class Odometry:
         result.divergence_threshold = judgement.threshold
         return tracking, judgement
 
-    def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> Keyframe | None:
+    def _accept(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> None:
         """The direct half accepts the frame and maps it; at a new direct keyframe the feature map grows
-        (Fig. 4). With a mapping thread, a trusted frame is mapped there and None is returned; anything else is
-        mapped here, at once."""
+        (Fig. 4). With a mapping thread, a trusted frame is mapped there; anything else is mapped here, at once."""
         # Offline, a start on probation is mapped here too: one that fails is discarded at the frame it fails at.
         inline = not self.direct.initialized or (self.direct.on_probation and self.config.mapping.wait_for_keyframes)
         if self.mapper is None or inline:
-            keyframe = self.direct.accept(frame, tracking, result)
-            self._grow_feature_map(keyframe, result)
-            return keyframe
+            self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
+            return
         self.direct.commit(frame, tracking, result)
         make_keyframe = self.direct.wants_keyframe(frame, tracking) and not self.mapper.keyframe_pending
         result.is_keyframe = make_keyframe
@@ -289,7 +288,6 @@ class Odometry:
 
         self.queued_frame = frame.index
         self.mapper.submit(frame.index, frame.timestamp, map_direct, keyframe=make_keyframe, may_skip=not make_keyframe)
-        return None
 
     def _grow_features_beside(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
                               result: FrameResult) -> MapSnapshot:
@@ -306,58 +304,58 @@ class Odometry:
         if self.feature_mapper is not None:
             self.feature_mapper.wait_idle()
 
-    def _initialize(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+    def _initialize(self, frame: DirectFrame, result: FrameResult) -> None:
         """Feed the direct initializer. After a reinitialization, first try to go on in the old map, so that it
         keeps its scale instead of a new one: its window where it was kept, else its feature map (blind, and
         around where the map's last motion would have taken the camera)."""
         if self.features is not None and self.direct.has_window:
-            keyframe = self._track_old_window(frame, result)
+            self._track_old_window(frame, result)
             if result.T_world_cam is not None:
-                return keyframe
+                return
         elif self.features is not None and not self.features.empty:
             outcome = self.features.recover(frame.frame.image, self.features.map.newest().frame_index,
                                             self._predicted_pose(frame))
             result.timings_ms["recovery"] = outcome.ms
             if outcome.succeeded:
                 _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
-                return self._continue_from(frame, outcome, None, result)
+                self._continue_from(frame, outcome, None, result)
+                return
         outcome = self.direct.initialize(frame, result)
         if outcome is not None and self.features is not None:
             if not self.features.empty:
                 self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
                 self.posed = []
             self._map_features(result, initialization=outcome)
-        return None
 
-    def _track_old_window(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+    def _track_old_window(self, frame: DirectFrame, result: FrameResult) -> None:
         """A frame while a new map initializes: the old window is tracked and recovered from as before the
         reinitialization, so that frames that come back after a long failure (KITTI: 10 noise frames, 11 m on)
         go on in the old map at its scale. Where direct tracking is back, the new initialization is dropped."""
-        keyframe = self._track_direct(frame, result)
+        self._track_direct(frame, result)
         if result.T_world_cam is not None and not self.direct.initialized and self.mode is _Mode.DIRECT:
             self.direct.resume()
             _emit(result, EventKind.REINITIALIZATION_ABANDONED, {"keyframe": self.direct.newest_keyframe.frame_index})
-        return keyframe
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 3
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                 result: FrameResult) -> Keyframe | None:
+                 result: FrameResult) -> None:
         estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
         result.timings_ms["recovery"] = outcome.ms
         if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
-            return self._accept(frame, tracking, result)
+            self._accept(frame, tracking, result)
+            return
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
         if not outcome.succeeded:
             _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
             self._set_matches(result, outcome, tracking.reference)
-            return None
+            return
         _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
         self._set_matches(result, outcome, tracking.reference)
-        return self._continue_from(frame, outcome, tracking, result)
+        self._continue_from(frame, outcome, tracking, result)
 
     def _suspect_stands(self, tracking: DirectTracking, judgement: Judgement, outcome, result: FrameResult) -> bool:
         """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
@@ -397,7 +395,7 @@ class Odometry:
         return True
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
-                       result: FrameResult) -> Keyframe | None:
+                       result: FrameResult) -> None:
         """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window.
         Where that ends where the motion model's alignment (``direct``) ended, two starts found the same optimum:
         the direct pose was right, and tracking goes on in the same window at the same scale. Otherwise the direct
@@ -416,7 +414,8 @@ class Odometry:
                 _emit(result, EventKind.DIRECT_RESUMED,
                       {"keyframe": direct.reference.frame_index, "rmse": round(float(tracking.rmse_after), 3),
                        "last_rmse": round(float(tracking.last_rmse), 3), "stage": outcome.stage})
-                return self._accept(frame, tracking, result)
+                self._accept(frame, tracking, result)
+                return
             refined = tracking.converged and self.features.explained(
                 outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
             T_world_cam = tracking.T_world_cam if refined else T_world_cam
@@ -425,11 +424,9 @@ class Odometry:
             _emit(result, EventKind.DIRECT_RESTARTED,
                   {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined})
             self.mode = _Mode.DIRECT
-            keyframe = self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result)
-            self._grow_feature_map(keyframe, result)
-            return keyframe
+            self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
+            return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
-        return None
 
     def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
         """Whether the alignment from the recovered pose ended where the motion model's did (within
@@ -442,7 +439,7 @@ class Odometry:
         shift_px = self.features.reprojection_shift(outcome.pose, direct.T_world_cam, retracked.T_world_cam)
         return shift_px <= self.config.fdmo.same_optimum_px
 
-    def _track_features(self, frame: DirectFrame, result: FrameResult) -> Keyframe | None:
+    def _track_features(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the
         direct map restarts as soon as enough feature depths are in view."""
         anchor = self.features.map.newest().frame_index
@@ -453,9 +450,9 @@ class Odometry:
             if not outcome.succeeded:
                 self.mode = _Mode.DIRECT  # lost: the next frames go through the recovery
                 _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
-                return None
+                return
             _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
-        return self._continue_from(frame, outcome, None, result)
+        self._continue_from(frame, outcome, None, result)
 
     def _predicted_pose(self, frame: DirectFrame) -> np.ndarray | None:
         """Where the map's last motion, kept up over the time that passed, puts the camera: the feature map is
@@ -472,7 +469,7 @@ class Odometry:
     # ------------------------------------------------------------------------------------ without recovery
 
     def _without_recovery(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                          result: FrameResult) -> Keyframe | None:
+                          result: FrameResult) -> None:
         """--method direct: DSO's behaviour, reported. A lost frame reinitializes at once; a diverged one is
         reported and kept (there is nothing to recover from), and so is one after missed frames (nothing can check
         it: teddy with 20-45 frames dropped ends 0.09-0.23 m off, and would say nothing); another suspect one is
@@ -483,11 +480,11 @@ class Odometry:
             _emit(result, EventKind.REINITIALIZATION, {"origin_from_frame_pose": origin.tolist()})
             self.direct.reinitialize(origin)
             self.direct.initialize(frame, result)
-            return None
+            return
         if judgement.verdict is Verdict.DIVERGED or tracking.intervals_missed is not None:
             _emit(result, EventKind.DIVERGENCE_DETECTED,
                   {**judgement.details(tracking), "recovery": "none (--method direct keeps the pose)"})
-        return self._accept(frame, tracking, result)
+        self._accept(frame, tracking, result)
 
     def _report_failure(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                         result: FrameResult) -> None:

@@ -361,8 +361,7 @@ class DirectOdometry:
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
-        if self.start_failure is not None and discard_failed_start:
-            self._discard_start(frame, result)
+        if discard_failed_start and self.discard_failed_start(frame, result):
             return None
         return keyframe
 
