@@ -380,7 +380,7 @@ class _Script:
                     player.drop_next(beyond, source="script")
                     requested = True
             while self.jumps.get(frame):
-                player.jump_to(self.jumps[frame].popleft(), source="script")
+                self.handed_out(frame, player)
                 requested = True
         return requested
 
