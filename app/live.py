@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from app.player import REALTIME_SOURCE, PlaybackState
-from vo_core.datasets.base import Frame, to_gray_u8
+from vo_core.datasets.base import Frame, rectification, to_gray_u8
 from vo_core.datasets.calibration import load_camera_file
 from vo_core.errors import InputError
 from vo_core.events import Event, EventKind
@@ -46,8 +46,7 @@ def live_undistorter(device: int, calibration_file: Path | None, undistort_outpu
     if calibration_file is None:
         raise InputError(f"{LIVE_PREFIX}:{device}: a live camera needs its calibration (--camera FILE)")
     calibration = load_camera_file(Path(calibration_file))
-    crop_to_file = undistort_output == "crop" and calibration.output is not None
-    return Undistorter(calibration.camera, calibration.output if crop_to_file else undistort_output)
+    return rectification(calibration.camera, undistort_output, calibration.output, calibration_file)
 
 
 class LiveCamera:

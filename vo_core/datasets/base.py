@@ -203,8 +203,7 @@ class Sequence:
         self._images = images
         self._timestamps = np.asarray(timestamps, dtype=float)
         self._exposures_ms = None if exposures_ms is None else np.asarray(exposures_ms, dtype=float)
-        self._undistorter = _undistorter(raw_camera, _undistorter_output(options.undistort_output, calibration_output),
-                                         root)
+        self._undistorter = rectification(raw_camera, options.undistort_output, calibration_output, root)
         self._selection = np.arange(len(images))
         self._check_image_size()
 
@@ -333,21 +332,17 @@ class Sequence:
         return description
 
 
-def _undistorter(raw_camera: CameraModel, output: OutputSpec, root: Path) -> Undistorter:
-    """The rectification of the calibration's camera. Numbers that parse but describe no camera (a distortion of
-    1e300, a focal length of 1e-300) fail in its arithmetic: that is bad input, said in one line."""
+def rectification(raw_camera: CameraModel, requested: OutputSpec, calibration_output: OutputSpec | None,
+                  source) -> Undistorter:
+    """The rectification of the calibration's camera, to the calibration file's own target (TUM monoVO: 1280x1024
+    cropped to 640x480) unless the caller asked for something other than the default "crop". Numbers that parse but
+    describe no camera (a distortion of 1e300, a focal length of 1e-300) fail in its arithmetic: that is bad input
+    from ``source``, said in one line."""
+    output = calibration_output if requested == "crop" and calibration_output is not None else requested
     try:
         return Undistorter(raw_camera, output)
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as error:
-        raise InputError(f"{root}: the camera calibration cannot be rectified ({error})") from None
-
-
-def _undistorter_output(requested: OutputSpec, calibration_output: OutputSpec | None) -> OutputSpec:
-    """The calibration file's own target (TUM monoVO: 1280x1024 cropped to 640x480) unless the caller asked for
-    something other than the default "crop"."""
-    if isinstance(requested, str) and requested == "crop" and calibration_output is not None:
-        return calibration_output
-    return requested
+        raise InputError(f"{source}: the camera calibration cannot be rectified ({error})") from None
 
 
 _END = object()
