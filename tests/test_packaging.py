@@ -4,6 +4,7 @@ outside the repository, ``fdmo run`` with no argument finds its sequence as a cl
 from __future__ import annotations
 
 import shutil
+import site
 import subprocess
 import sys
 import venv
@@ -42,8 +43,13 @@ def test_the_wheel_holds_every_file_of_the_package_data(wheel):
 
 def test_the_installed_wheel_opens_the_bundled_sequence_outside_the_repository(wheel, tmp_path):
     environment = tmp_path / "venv"
-    venv.create(environment, system_site_packages=True, with_pip=True)  # the dependencies as installed here
+    venv.create(environment, with_pip=True)
     python = environment / "bin" / "python"
+    # The dependencies as installed here (this environment's site-packages, which may be a venv's own: a venv made
+    # with system_site_packages sees only the base interpreter's), after the new environment's own packages.
+    own = subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], check=True,
+                         capture_output=True, text=True).stdout.strip()
+    (Path(own) / "dependencies_here.pth").write_text("\n".join(site.getsitepackages()) + "\n")
     subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True, timeout=300)
     opened = subprocess.run(
         [str(python), "-c", "from vo_core.datasets import DEFAULT_SEQUENCE, open_sequence; "
