@@ -179,3 +179,42 @@ def test_a_feature_pose_too_weakly_supported_does_not_overrule_the_direct_one():
     assert unverified and "too weakly supported" in unverified[0].details["why"]
     assert after.T_world_cam is not None
     assert not {EventKind.RECOVERY_TRIED, EventKind.DIRECT_RESTARTED, EventKind.DIRECT_RESUMED} & set(kinds(results))
+
+
+@pytest.mark.parametrize("lags", [False, True])
+def test_after_missed_frames_a_direct_pose_that_stays_behind_is_not_kept_on_weak_evidence(lags, clean_ate):
+    """Direct alignment after a large jump locks onto the view it left where the images look alike (parking's rows
+    of cars) and stays behind. With the feature map too weak to decide (agreement above 100 %, overrule share out of
+    reach), the frame after missed frames keeps its direct pose only where it covers half the image motion the last
+    motion predicts over the gap: the right pose is kept as unverified, a pose made to stay where the camera was
+    before the gap is refused, with the reason, and never enters the map."""
+    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", "fdmo.overrule_share=1.0"]),
+                        CAMERA)
+    after_gap = FAULT_START + 3
+    track = odometry.direct.track
+
+    def staying_behind(frame, prior=None):
+        tracking = track(frame, prior)
+        if frame.index != after_gap or prior is not None or not tracking.converged:
+            return tracking
+        T_frame_ref = np.linalg.inv(odometry.posed[-1][1]) @ tracking.reference.T_world_cam
+        return dataclasses.replace(tracking, result=dataclasses.replace(tracking.result, T_frame_ref=T_frame_ref))
+
+    if lags:
+        odometry.direct.track = staying_behind
+    results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < after_gap]
+    after = next(r for r in results if r.frame_index == after_gap)
+    if not lags:
+        unverified = [e for e in after.events if e.kind is EventKind.TRACKING_UNVERIFIED]
+        assert unverified and unverified[0].details["direct_motion_px"] > 0.5 * unverified[0].details[
+            "predicted_motion_px"]
+        assert after.T_world_cam is not None
+        return
+    refused = [e for e in after.events if e.kind is EventKind.DIVERGENCE_DETECTED]
+    assert refused and "where the last motion predicts" in refused[0].details["reason"]
+    before_gap = next(r for r in results if r.frame_index == FAULT_START - 1)
+    assert after.T_world_cam is None or not np.allclose(after.T_world_cam, before_gap.T_world_cam)
+    # What the frame got instead (a recovery, or no pose) keeps the run where it was: near the clean run's error.
+    posed = [r for r in results if r.T_world_cam is not None]
+    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 2 * clean_ate + 1e-3

@@ -45,7 +45,7 @@ from vo_core.errors import InputError
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
-from vo_core.geometry.multiview import project_world
+from vo_core.geometry.multiview import image_motion_px, project_world
 from vo_core.init.registry import initializer_factory
 from vo_core.mapping_thread import MappingThread
 
@@ -343,7 +343,7 @@ class Odometry:
         estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
         result.timings_ms["recovery"] = outcome.ms
-        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(tracking, judgement, outcome, result):
+        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome, result):
             self._accept(frame, tracking, result)
             return
         self._report_failure(frame, tracking, judgement, result)
@@ -357,28 +357,43 @@ class Odometry:
         self._set_matches(result, outcome, tracking.reference)
         self._continue_from(frame, outcome, tracking, result)
 
-    def _suspect_stands(self, tracking: DirectTracking, judgement: Judgement, outcome, result: FrameResult) -> bool:
+    def _suspect_stands(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement, outcome,
+                        result: FrameResult) -> bool:
         """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
         best candidate of one that fell short) confirms it where the two agree; it overrules it only with a
         conclusive share of the map points in view; below that share, or with no feature pose at all, the direct
         pose is kept, reported as unverified, unless the search around it finds almost none of the points the map
-        expects there. A frame with too few features to say anything keeps it too (FDMO's point: the direct
-        estimate is then all there is). Where it is not kept, the judgement gets the reason."""
+        expects there, or, after missed frames, it stayed behind the motion the last motion predicts. A frame with
+        too few features to say anything keeps it too (FDMO's point: the direct estimate is then all there is).
+        Where it is not kept, the judgement gets the reason."""
         check = {**judgement.details(tracking), **outcome.details()}
         pose = outcome.pose
         if pose is not None and pose.num_inliers >= self.config.features.recovery.min_ransac_inliers:
             explained = self.features.explained(pose, tracking.T_world_cam, outcome.features)
-            if explained >= self.config.fdmo.agreement:
-                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True, "explained": round(explained, 3)})
+            check["explained"] = round(explained, 3)
+            agrees = explained >= self.config.fdmo.agreement
+            # A feature pose confirms only as a recovery (its inliers and share), and overrules only with a
+            # conclusive share; a weaker one, agreeing or not, leaves the direct pose to the motion check.
+            conclusive = outcome.succeeded if agrees else pose.found_fraction >= self.config.fdmo.overrule_share
+            if agrees and conclusive:
+                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True})
                 return True
-            if pose.found_fraction < self.config.fdmo.overrule_share:
-                _emit(result, EventKind.TRACKING_UNVERIFIED, {
-                    **check, "explained": round(explained, 3), "why": (
-                        f"the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} of the points "
-                        f"in view) disagrees but is too weakly supported to overrule the direct one")})
+            if conclusive:
+                judgement.reason += (f"; the feature map disagrees (the direct pose explains {explained:.0%} of its "
+                                     "matches)")
+                return False
+            if not self._moved_as_predicted(frame, tracking, judgement, check):
+                judgement.reason += (f"; the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} "
+                                     "of the points in view) is too weakly supported to confirm it")
+                return False
+            if agrees:
+                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True})
                 return True
-            judgement.reason += f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
-            return False
+            _emit(result, EventKind.TRACKING_UNVERIFIED, {
+                **check, "why": (
+                    f"the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} of the points "
+                    f"in view) disagrees but is too weakly supported to overrule the direct one")})
+            return True
         if outcome.feature_deprived:
             _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
             return True
@@ -387,12 +402,36 @@ class Odometry:
             judgement.reason += (f"; the feature map finds {around.num_inliers} of the {around.in_view} points it "
                                  "expects in view at the direct pose")
             return False
+        if not self._moved_as_predicted(frame, tracking, judgement, check):
+            judgement.reason += ", and the feature map cannot place the frame"
+            return False
         # No feature pose, and nothing that contradicts the converged alignment: after a long forward jump the
         # direct map still holds the far points the feature map lost (KITTI, 20 frames dropped: direct alone
         # 0.159 m; dropped as diverged until a new map: 8.59 m).
         _emit(result, EventKind.TRACKING_UNVERIFIED, {
             **check, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
         return True
+
+    def _moved_as_predicted(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                            check: dict) -> bool:
+        """Whether a direct pose that nothing confirms may stand by the motion: after missed frames it must cover
+        ``gap_motion_share`` of the image motion (of the reference's points) that the last motion, kept up over the
+        time that passed, predicts. Direct alignment after a large jump locks onto the view it left, where the
+        images look alike (parking's rows of parked cars), and stays behind; nothing else tells that lock from a
+        right pose when the feature map cannot place the frame. Frames without missed ones, or without a last
+        motion, pass. Where it fails, the judgement gets the reason; ``check`` gets the measures either way."""
+        predicted = self._predicted_pose(frame)
+        if tracking.intervals_missed is None or predicted is None or len(self.posed) < 2:
+            return True
+        points, T_world_last = tracking.reference.points_world(), self.posed[-1][1]
+        expected_px = image_motion_px(self.camera, points, T_world_last, predicted)
+        found_px = image_motion_px(self.camera, points, T_world_last, tracking.T_world_cam)
+        check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1))
+        if not found_px < self.config.fdmo.gap_motion_share * expected_px:
+            return True
+        judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
+                             f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px")
+        return False
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
                        result: FrameResult) -> None:

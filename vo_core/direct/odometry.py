@@ -125,6 +125,13 @@ class TrackingReference:
     def exposure(self) -> float | None:
         return self.keyframe.exposure
 
+    def points_world(self) -> np.ndarray:
+        """(N, 3) the reference's points (the window's, as the keyframe sees them) where the reference put them."""
+        keyframe = self.keyframe
+        finite = keyframe.reference_idepth > 0
+        points_cam = keyframe.camera.unproject(keyframe.reference_uv[finite]) / keyframe.reference_idepth[finite, None]
+        return transform_points(self.T_world_cam, points_cam)
+
 
 class _State(Enum):
     INITIALIZING = "initializing"

@@ -17,7 +17,7 @@ from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcom
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
-from vo_core.geometry.multiview import project_world
+from vo_core.geometry.multiview import image_motion_px
 
 
 class FeatureOdometry:
@@ -62,13 +62,7 @@ class FeatureOdometry:
     def reprojection_shift(self, pose: PoseFromMap, T_world_a: np.ndarray, T_world_b: np.ndarray) -> float:
         """Median distance in pixels between where the pose's inlier map points appear from camera pose a and
         from b: how far apart two poses are, in what the images can tell apart (inf with no point in front)."""
-        points = self.map.points.position[pose.point_ids[pose.inlier]]
-        uv_a, depth_a = project_world(self.camera, T_world_a, points)
-        uv_b, depth_b = project_world(self.camera, T_world_b, points)
-        front = (depth_a > 0) & (depth_b > 0)
-        if not front.any():
-            return float("inf")
-        return float(np.median(np.linalg.norm(uv_a[front] - uv_b[front], axis=1)))
+        return image_motion_px(self.camera, self.map.points.position[pose.point_ids[pose.inlier]], T_world_a, T_world_b)
 
     def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched:

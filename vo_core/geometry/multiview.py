@@ -48,6 +48,19 @@ def project_world(
         return camera.project(points_cam), points_cam[:, 2]
 
 
+def image_motion_px(
+    camera: PinholeCamera, points_world: np.ndarray, T_world_a: np.ndarray, T_world_b: np.ndarray
+) -> float:
+    """Median distance in pixels between where world points appear from camera pose a and from b (those in front
+    of both): how far apart two poses are, in what the images can tell apart; inf with no point in front of both."""
+    uv_a, depth_a = project_world(camera, T_world_a, points_world)
+    uv_b, depth_b = project_world(camera, T_world_b, points_world)
+    front = (depth_a > 0) & (depth_b > 0)
+    if not front.any():
+        return float("inf")
+    return float(np.median(np.linalg.norm(uv_a[front] - uv_b[front], axis=1)))
+
+
 def reprojection_errors(
     camera: PinholeCamera, T_world_cam: np.ndarray, points_world: np.ndarray, uv: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
