@@ -71,6 +71,22 @@ def test_tracking_from_far_off_fails_detectably(pair, tracker):
     assert not far.success or far.rmse_after > 3.0 * good.rmse_after
 
 
+def test_a_guess_that_meets_an_earlier_one_at_the_coarsest_level_is_dropped_there(pair, tracker):
+    """DSO tries up to 31 motion guesses on a hard frame; those ending in the coarse optimum an earlier guess reached
+    would repeat its finer levels: they fail at once (no finer level run), a guess that ends elsewhere does not."""
+    _, _, current, _, T_true = pair
+    optima: list[np.ndarray] = []
+    start = se3_exp(np.array([0.02, -0.01, 0.01, 0.004, 0.008, 0.0])) @ T_true
+    first = tracker.track(current, start, np.zeros(2), None, coarse_optima=optima)
+    nearby = tracker.track(current, se3_exp(np.array([0.0, 0.01, 0.0, 0.0, 0.004, 0.0])) @ start, np.zeros(2), None,
+                           coarse_optima=optima)
+    assert first.success and len(optima) == 1
+    assert not nearby.success and np.isnan(nearby.rmse_per_level[0]) and len(optima) == 1
+    far = tracker.track(current, se3_exp(np.array([0.0, 0.0, 0.0, 0.0, 0.35, 0.0])) @ T_true, np.zeros(2), None,
+                        coarse_optima=optima)
+    assert np.isfinite(far.rmse_per_level[-1]) and len(optima) == 2
+
+
 @pytest.mark.parametrize("density", [500, 1000, 2000])
 def test_pixel_selection_reaches_the_requested_density(pair, density):
     _, reference, _, _, _ = pair

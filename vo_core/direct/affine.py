@@ -13,13 +13,15 @@ from __future__ import annotations
 import numpy as np
 
 
+def exposure_ratio(exposure_from: float | None, exposure_to: float | None) -> float:
+    """t_j / t_i, 1 where either exposure time is unknown."""
+    return exposure_to / exposure_from if exposure_from and exposure_to else 1.0
+
+
 def relative_affine(
     exposure_from: float | None, exposure_to: float | None, ab_from: np.ndarray, ab_to: np.ndarray
 ) -> tuple[float, float]:
     """(factor, offset) predicting intensities of frame ``to`` from frame ``from``."""
-    exposure_ratio = 1.0
-    if exposure_from and exposure_to:
-        exposure_ratio = exposure_to / exposure_from
     with np.errstate(over="ignore"):  # a diverging optimizer may propose huge a: inf is rejected upstream
-        factor = exposure_ratio * float(np.exp(ab_to[0] - ab_from[0]))
+        factor = exposure_ratio(exposure_from, exposure_to) * float(np.exp(ab_to[0] - ab_from[0]))
     return factor, float(ab_to[1] - factor * ab_from[1])

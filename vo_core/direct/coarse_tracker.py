@@ -8,20 +8,19 @@ schedule and stopping rules, and an abort when a level ends worse than the best 
 Every reference point is DSO's 8-pixel pattern around a pixel of the reference keyframe, all pattern pixels
 warped with the point's inverse depth. On coarser levels, points falling into the same pixel are merged
 (their inverse depths averaged), as DSO's makeCoarseDepthL0 does. The per-pixel loops (warp, bilinear lookup,
-Huber residual, normal equations) are compiled kernels (photometric_kernels.py).
+Huber residual, normal equations) and each level's optimization loop are compiled kernels (photometric_kernels.py).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from vo_core.direct.affine import relative_affine
+from vo_core.direct.affine import exposure_ratio
 from vo_core.direct.config import PATTERN_8, TrackerConfig
-from vo_core.direct.photometric_kernels import normal_equations, warp_residuals
+from vo_core.direct.photometric_kernels import align_level, level_residuals
 from vo_core.direct.pyramid import ImagePyramid, to_level
-from vo_core.geometry.lie import se3_exp
 
 PATTERN = np.array(PATTERN_8, dtype=float)  # (8, 2)
 WARP_BORDER = 2.0  # calcRes: Ku > 2 && Ku < w - 3
@@ -37,21 +36,6 @@ class _LevelPoints:
     centre_rays: np.ndarray  # (N, 3) of the point centres (flow indicators)
     centre_idepth: np.ndarray  # (N,)
     intrinsics: np.ndarray  # (fx, fy, cx, cy) of the level
-
-
-@dataclass
-class _Residuals:
-    energy: float
-    num_terms: int
-    saturated_ratio: float
-    # The non-saturated terms for the normal equations (calcGSSSE): the first ``count`` rows of
-    # photometric_kernels.warp_residuals' buffer.
-    terms: np.ndarray = field(default_factory=lambda: np.zeros((0, 8), np.float32))
-    count: int = 0
-
-    @property
-    def mean_energy(self) -> float:
-        return self.energy / self.num_terms if self.num_terms else np.inf
 
 
 @dataclass
@@ -85,7 +69,6 @@ class CoarseTracker:
     def __init__(self, config: TrackerConfig):
         self.config = config
         self._scale = self._step_scale()
-        self._scale_outer = np.outer(self._scale, self._scale)
         self.reference: ImagePyramid | None = None
         self.levels: list[_LevelPoints] = []
         self.reference_affine = np.zeros(2)
@@ -143,30 +126,8 @@ class CoarseTracker:
 
     # ------------------------------------------------------------------------------------ residuals
 
-    def _relative_affine(self, affine: np.ndarray, exposure: float | None) -> tuple[float, float]:
-        return relative_affine(self.reference_exposure, exposure, self.reference_affine, affine)
-
-    def _residuals(
-        self,
-        frame: ImagePyramid,
-        level: int,
-        T_frame_ref: np.ndarray,
-        affine: np.ndarray,
-        exposure: float | None,
-        cutoff: float,
-    ) -> _Residuals:
-        """calcRes: Huber energy of all warped pattern pixels, saturated beyond ``cutoff`` (float32 throughout)."""
-        config = self.config
-        points = self.levels[level]
-        factor, offset = self._relative_affine(affine, exposure)
-        if not (np.isfinite(factor) and np.isfinite(offset)):
-            return _Residuals(energy=np.inf, num_terms=0, saturated_ratio=1.0)
-        terms, count, num_terms, saturated, energy = warp_residuals(
-            points.rays, points.idepth, points.color, T_frame_ref[:3, :3], T_frame_ref[:3, 3],
-            points.intrinsics, WARP_BORDER, frame[level].packed,
-            float(factor), float(offset), float(config.huber_threshold), float(cutoff),
-        )
-        return _Residuals(energy, num_terms, saturated / max(num_terms, 1), terms, count)
+    def _exposure_ratio(self, exposure: float | None) -> float:
+        return exposure_ratio(self.reference_exposure, exposure)
 
     def _flow_indicators(self, camera, points: _LevelPoints, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """calcRes' keyframe indicators: mean squared pixel shift of every 32nd point under +-t and R, +-t."""
@@ -193,15 +154,6 @@ class CoarseTracker:
         both = (shift(rotated + idepth * t) + shift(rotated - idepth * t)) / num
         return np.array([translation, 0.0, both])
 
-    def _normal_equations(
-        self, frame: ImagePyramid, level: int, res: _Residuals, affine: np.ndarray, exposure: float | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """calcGSSSE: H and b of the 8 parameters (v, w, a, b), averaged per term and scaled as DSO."""
-        fx, fy = self.levels[level].intrinsics[:2]
-        factor, _ = self._relative_affine(affine, exposure)
-        H, b = normal_equations(res.terms, res.count, fx, fy, factor, self.reference_affine[1])
-        return H * self._scale_outer, b * self._scale
-
     def _step_scale(self) -> np.ndarray:
         c = self.config
         return np.array([c.scale_translation] * 3 + [c.scale_rotation] * 3 + [c.scale_a, c.scale_b])
@@ -211,9 +163,14 @@ class CoarseTracker:
     def rmse(
         self, frame: ImagePyramid, T_frame_ref: np.ndarray, affine: np.ndarray, exposure: float | None, level: int = 0
     ) -> float:
-        """sqrt(mean Huber energy) of Eq. 2 at a given pose, with DSO's cutoff."""
-        res = self._residuals(frame, level, T_frame_ref, affine, exposure, self.config.cutoff_threshold)
-        return float(np.sqrt(res.mean_energy))
+        """sqrt(mean Huber energy) of Eq. 2 at a given pose, with DSO's cutoff (calcRes)."""
+        points = self.levels[level]
+        _, _, num_terms, _, energy, _ = level_residuals(
+            points.rays, points.idepth, points.color, np.ascontiguousarray(T_frame_ref, dtype=float),
+            np.asarray(affine, dtype=float), points.intrinsics, WARP_BORDER, frame[level].packed,
+            self._exposure_ratio(exposure), self.reference_affine, float(self.config.huber_threshold),
+            float(self.config.cutoff_threshold))
+        return float(np.sqrt(energy / num_terms)) if num_terms else float("inf")
 
     def track(
         self,
@@ -223,30 +180,38 @@ class CoarseTracker:
         exposure: float | None,
         max_rmse_for_abort: np.ndarray | None = None,
         coarsest_level: int | None = None,
+        measure_start: bool = True,
+        coarse_optima: list[np.ndarray] | None = None,
     ) -> TrackingResult:
-        """trackNewestCoarse from an initial pose and affine; ``max_rmse_for_abort`` is DSO's minResForAbort."""
+        """trackNewestCoarse from an initial pose and affine; ``max_rmse_for_abort`` is DSO's minResForAbort.
+        ``measure_start``: the RMSE at the initial pose (``rmse_before``: FDMO's divergence test reads the first
+        guess's only; NaN where not measured). ``coarse_optima``: where earlier guesses of the same frame ended on
+        the coarsest level; a guess that ends there too would repeat their finer levels, and fails at once (ours:
+        on a hard frame DSO's 31 guesses all ran every level, though they met in a handful of coarse optima)."""
         config = self.config
         num_levels = min(len(frame), len(self.levels))
         coarsest = num_levels - 1 if coarsest_level is None else min(coarsest_level, num_levels - 1)
         abort = np.full(num_levels, np.nan) if max_rmse_for_abort is None else np.asarray(max_rmse_for_abort)
         T = orthonormalized(T_frame_ref)
         ab = np.array(affine, dtype=float)
-        rmse_before = self.rmse(frame, T, ab, exposure, level=0)
+        rmse_before = self.rmse(frame, T, ab, exposure, level=0) if measure_start else float("nan")
         rmse_levels = np.full(num_levels, np.nan)
         flow = np.zeros(3)  # DSO's flow indicators come from the finest level only
         num_terms = 0
         repeated = False
         level = coarsest
         while level >= 0:
-            res, cutoff_repeat = self._residuals_with_cutoff(frame, level, T, ab, exposure)
-            T, ab, res = self._optimize_level(frame, level, T, ab, exposure, res, cutoff_repeat)
-            rmse_levels[level] = np.sqrt(res.mean_energy)
-            num_terms = res.num_terms
+            T, ab, mean_energy, num_terms, cutoff_repeat = self._align_level(frame, level, T, ab, exposure)
+            rmse_levels[level] = np.sqrt(mean_energy)
             if not np.isfinite(rmse_levels[level]) or rmse_levels[level] > config.abort_factor * abort[level]:
                 return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms)
             if cutoff_repeat > 1 and not repeated:
                 repeated = True  # DSO: a level that needed a larger cutoff is optimized once more
                 continue
+            if coarse_optima is not None and level == coarsest:
+                if self._reached_before(level, T, coarse_optima):
+                    return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms)
+                coarse_optima.append(T)
             level -= 1
         flow = self._flow_indicators(frame[0].camera, self.levels[0], T[:3, :3], T[:3, 3])
         success = (
@@ -256,47 +221,35 @@ class CoarseTracker:
         )
         return self._result(success, T, ab, rmse_levels, rmse_before, flow, num_terms)
 
-    def _residuals_with_cutoff(self, frame, level, T, ab, exposure) -> tuple[_Residuals, float]:
-        config = self.config
-        repeat = 1.0
-        res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold)
-        while res.saturated_ratio > config.max_saturated_ratio and repeat < config.max_cutoff_repeat:
-            repeat *= 2.0
-            res = self._residuals(frame, level, T, ab, exposure, config.cutoff_threshold * repeat)
-        return res, repeat
+    def _align_level(self, frame: ImagePyramid, level: int, T: np.ndarray, ab: np.ndarray, exposure: float | None):
+        """One level's cutoff and DSO's Levenberg-Marquardt loop (photometric_kernels.align_level): (T, ab, mean
+        energy, terms, the cutoff's repeat factor)."""
+        c = self.config
+        points = self.levels[level]
+        max_iterations = c.max_iterations[min(level, len(c.max_iterations) - 1)]
+        T, ab, mean_energy, num_terms, repeat = align_level(
+            points.rays, points.idepth, points.color, np.ascontiguousarray(T), np.ascontiguousarray(ab),
+            points.intrinsics, WARP_BORDER, frame[level].packed, self._exposure_ratio(exposure), self.reference_affine,
+            float(c.huber_threshold), float(c.cutoff_threshold), float(c.max_saturated_ratio),
+            float(c.max_cutoff_repeat), self._scale, float(c.initial_lambda), float(c.lambda_extrapolation_limit),
+            float(c.lambda_decrease), float(c.lambda_increase), int(max_iterations), float(c.min_increment_norm),
+        )
+        return T, ab, float(mean_energy), int(num_terms), float(repeat)
 
-    def _optimize_level(self, frame, level, T, ab, exposure, res: _Residuals, cutoff_repeat: float):
-        """DSO's LM loop of one level: accept when the mean energy drops, lambda x0.5 / x4."""
-        config = self.config
-        cutoff = config.cutoff_threshold * cutoff_repeat
-        H, b = self._normal_equations(frame, level, res, ab, exposure)
-        lam = config.initial_lambda
-        scale = self._scale
-        max_iterations = config.max_iterations[min(level, len(config.max_iterations) - 1)]
-        for _ in range(max_iterations):
-            H_damped = H + np.diag(np.diag(H)) * lam
-            try:
-                inc = np.linalg.solve(H_damped, -b)
-            except np.linalg.LinAlgError:
-                break
-            if lam < config.lambda_extrapolation_limit:
-                inc *= np.sqrt(np.sqrt(config.lambda_extrapolation_limit / lam))
-            with np.errstate(over="ignore", invalid="ignore"):  # a degenerate system: the step is dropped below
-                step = inc * scale
-            if not np.all(np.isfinite(step)):
-                step = np.zeros(8)
-            T_new = se3_exp(step[:6]) @ T
-            ab_new = ab + step[6:]
-            res_new = self._residuals(frame, level, T_new, ab_new, exposure, cutoff)
-            if res_new.mean_energy < res.mean_energy:
-                T, ab, res = T_new, ab_new, res_new
-                H, b = self._normal_equations(frame, level, res, ab, exposure)
-                lam *= config.lambda_decrease
-            else:
-                lam = max(lam * config.lambda_increase, config.lambda_extrapolation_limit)
-            if not np.linalg.norm(inc) > config.min_increment_norm:
-                break
-        return T, ab, res
+    def _reached_before(self, level: int, T_frame_ref: np.ndarray, optima: list[np.ndarray]) -> bool:
+        """Whether the level's points land within ``same_coarse_optimum_px`` (median, pixels of the level) of where
+        one of ``optima`` puts them."""
+        points = self.levels[level]
+        fx, fy, cx, cy = points.intrinsics
+
+        def pixels(T: np.ndarray) -> np.ndarray:
+            warped = points.centre_rays @ T[:3, :3].T + points.centre_idepth[:, None] * T[:3, 3]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.stack([fx * warped[:, 0] / warped[:, 2] + cx, fy * warped[:, 1] / warped[:, 2] + cy], 1)
+
+        here = pixels(T_frame_ref)
+        tolerance = self.config.same_coarse_optimum_px
+        return any(np.nanmedian(np.linalg.norm(here - pixels(T), axis=1)) <= tolerance for T in optima)
 
     @staticmethod
     def _result(success, T, ab, rmse_levels, rmse_before, flow, num_terms) -> TrackingResult:

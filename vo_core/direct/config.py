@@ -64,6 +64,10 @@ class TrackerConfig:
     # (--realtime) leave them out (ours): each costs ~50 ms here, so a frame that needed all of them cost 1-2 s and
     # the frames missed meanwhile made the next one as hard; FDMO's feature map recovers such a frame in ~70 ms.
     rotation_hypotheses: bool = True
+    # Ours: a guess whose coarsest level ends within this many pixels (median, at that level) of where an earlier
+    # guess of the same frame ended is dropped: its finer levels would repeat that guess's. On teddy's hard frames
+    # all 31 guesses ran every level (0.2-0.5 s a frame) though most met in a few coarse optima.
+    same_coarse_optimum_px: float = 0.05
     # Ours: a frame further from the last tracked one than 1.5 times the interval between the last two comes after
     # missed frames (a driver's drop, --drop), one nearer than 1/1.5 of it after a jump: the motion hypotheses then
     # take the time into account (motion_model.py). Regular timestamps (jitter well under half an interval) never

@@ -518,9 +518,11 @@ class DirectOdometry:
         best: TrackingResult | None = None
         prior_rmse = float("nan")
         tried = 0
+        coarse_optima: list[np.ndarray] = []
         for attempt, T_frame_ref in enumerate(hypotheses):
             tried += 1
-            tracking = tracker.track(pyramid, T_frame_ref, affine, exposure, achieved)
+            tracking = tracker.track(pyramid, T_frame_ref, affine, exposure, achieved, measure_start=attempt == 0,
+                                     coarse_optima=coarse_optima)
             if attempt == 0:
                 prior_rmse = tracking.rmse_before
             rmse = tracking.rmse_per_level

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from vo_core.geometry.lie import se3_exp_compiled
+
 # Columns of the per-term buffer that ``warp_residuals`` fills for ``normal_equations``.
 TERM_U, TERM_V, TERM_IDEPTH, TERM_GX, TERM_GY, TERM_RESIDUAL, TERM_WEIGHT, TERM_COLOR = range(8)
 TERM_COLUMNS = 8
@@ -146,6 +148,87 @@ def normal_equations(terms, count, fx, fy, factor, reference_b):
             H[i, j] = H[j, i]
     n = max(count, 1)
     return H / n, b / n
+
+
+@numba.njit(cache=True, nogil=True)
+def level_residuals(rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
+                    cutoff):
+    """``warp_residuals`` at pose T (4x4, reference -> frame) and the frame's affine ``ab``, the brightness transfer
+    from the reference as affine.relative_affine gives it (its exposure ratio precomputed). The energy is inf where
+    the transfer is not finite (a diverging step)."""
+    factor = exposure_ratio * np.exp(ab[0] - reference_ab[0])
+    offset = ab[1] - factor * reference_ab[1]
+    if not (np.isfinite(factor) and np.isfinite(offset)):
+        return np.zeros((0, TERM_COLUMNS), np.float32), 0, 0, 0, np.inf, factor
+    R = np.ascontiguousarray(T[:3, :3])
+    t = np.ascontiguousarray(T[:3, 3])
+    terms, count, num_terms, saturated, energy = warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed,
+                                                                factor, offset, huber, cutoff)
+    return terms, count, num_terms, saturated, energy, factor
+
+
+@numba.njit(cache=True, nogil=True)
+def _mean(energy, num_terms):
+    return energy / num_terms if num_terms > 0 else np.inf
+
+
+@numba.njit(cache=True, nogil=True)
+def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
+                cutoff, max_saturated_ratio, max_cutoff_repeat, step_scale, initial_lambda, extrapolation_limit,
+                lambda_decrease, lambda_increase, max_iterations, min_increment_norm):
+    """One level of trackNewestCoarse: the cutoff doubled while more than ``max_saturated_ratio`` of the terms are
+    saturated, then DSO's Levenberg-Marquardt loop over the SE(3) increment (left-multiplied) and the affine
+    (a, b), its steps scaled by ``step_scale``: a step is accepted when the mean energy drops (lambda x decrease),
+    refused otherwise (lambda x increase, at least the extrapolation limit); below that limit a step is stretched
+    by (limit / lambda)^(1/4); the loop ends after ``max_iterations`` or an increment of norm at most
+    ``min_increment_norm``. One compiled call per level: the per-iteration Python around the kernels cost as much
+    as the kernels on the coarse levels, and DSO's list of motion guesses runs this up to 30 times a frame.
+
+    Returns (T, ab, mean energy, number of terms, the cutoff's repeat factor)."""
+    repeat = 1.0
+    terms, count, num_terms, saturated, energy, factor = level_residuals(
+        rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber, cutoff)
+    while saturated / max(num_terms, 1) > max_saturated_ratio and repeat < max_cutoff_repeat:
+        repeat *= 2.0
+        terms, count, num_terms, saturated, energy, factor = level_residuals(
+            rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
+            cutoff * repeat)
+    mean_energy = _mean(energy, num_terms)
+    fx, fy = intrinsics[0], intrinsics[1]
+    H, b = normal_equations(terms, count, fx, fy, factor, reference_ab[1])
+    H = H * np.outer(step_scale, step_scale)
+    b = b * step_scale
+    lam = initial_lambda
+    for _ in range(max_iterations):
+        H_damped = H.copy()
+        for i in range(8):
+            H_damped[i, i] += H[i, i] * lam
+        try:
+            inc = np.linalg.solve(H_damped, -b)
+        except Exception:  # noqa: BLE001 - numba raises LinAlgError for a singular system: the level ends
+            break
+        if lam < extrapolation_limit:
+            inc = inc * np.sqrt(np.sqrt(extrapolation_limit / lam))
+        step = inc * step_scale
+        if not np.all(np.isfinite(step)):
+            step = np.zeros(8)
+        T_new = se3_exp_compiled(step[:6].copy()) @ T
+        ab_new = ab + step[6:]
+        terms_new, count_new, num_new, saturated_new, energy_new, factor_new = level_residuals(
+            rays, idepth, color, T_new, ab_new, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
+            cutoff * repeat)
+        mean_new = _mean(energy_new, num_new)
+        if mean_new < mean_energy:
+            T, ab, mean_energy, num_terms = T_new, ab_new, mean_new, num_new
+            H, b = normal_equations(terms_new, count_new, fx, fy, factor_new, reference_ab[1])
+            H = H * np.outer(step_scale, step_scale)
+            b = b * step_scale
+            lam *= lambda_decrease
+        else:
+            lam = max(lam * lambda_increase, extrapolation_limit)
+        if not np.sqrt(np.sum(inc * inc)) > min_increment_norm:
+            break
+    return T, ab, mean_energy, num_terms, repeat
 
 
 @numba.njit(cache=True, nogil=True)

@@ -10,6 +10,7 @@ Conventions, used everywhere in the project:
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 _SMALL_ANGLE = 1e-8  # below this the Taylor expansions are exact to double precision
@@ -30,13 +31,26 @@ def vee(W: np.ndarray) -> np.ndarray:
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rodrigues' formula: R = I + sin(t)/t [w] + (1 - cos t)/t^2 [w]^2."""
-    w = np.asarray(w, dtype=float)
-    theta2 = float(w @ w)
-    W = hat(w)
+    return _so3_exp(np.asarray(w, dtype=float).reshape(3).copy())
+
+
+@numba.njit(cache=True, nogil=True)
+def _hat(w):
+    W = np.zeros((3, 3))
+    W[0, 1], W[0, 2], W[1, 2] = -w[2], w[1], -w[0]
+    W[1, 0], W[2, 0], W[2, 1] = w[2], -w[1], w[0]
+    return W
+
+
+@numba.njit(cache=True, nogil=True)
+def _so3_exp(w):
+    """so3_exp compiled, for the compiled kernels (direct alignment's steps) and for Python alike."""
+    theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    W = _hat(w)
     if theta2 < _SMALL_ANGLE**2:
-        return np.eye(3) + W + 0.5 * W @ W
+        return np.eye(3) + W + 0.5 * (W @ W)
     theta = np.sqrt(theta2)
-    return np.eye(3) + (np.sin(theta) / theta) * W + ((1.0 - np.cos(theta)) / theta2) * W @ W
+    return np.eye(3) + (np.sin(theta) / theta) * W + ((1.0 - np.cos(theta)) / theta2) * (W @ W)
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
@@ -67,16 +81,17 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
     """V(w) of the SE(3) exponential: t = V(w) v."""
-    theta2 = float(w @ w)
-    W = hat(w)
+    return _so3_left_jacobian(np.asarray(w, dtype=float).reshape(3).copy())
+
+
+@numba.njit(cache=True, nogil=True)
+def _so3_left_jacobian(w):
+    theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    W = _hat(w)
     if theta2 < _SMALL_ANGLE**2:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
+        return np.eye(3) + 0.5 * W + (W @ W) / 6.0
     theta = np.sqrt(theta2)
-    return (
-        np.eye(3)
-        + ((1.0 - np.cos(theta)) / theta2) * W
-        + ((theta - np.sin(theta)) / (theta2 * theta)) * W @ W
-    )
+    return np.eye(3) + ((1.0 - np.cos(theta)) / theta2) * W + ((theta - np.sin(theta)) / (theta2 * theta)) * (W @ W)
 
 
 def so3_geodesic_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
@@ -106,9 +121,19 @@ def se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """exp of xi = (v, w): R = exp([w]), t = V(w) v."""
-    xi = np.asarray(xi, dtype=float)
-    v, w = xi[:3], xi[3:6]
-    return se3(so3_exp(w), so3_left_jacobian(w) @ v)
+    return se3_exp_compiled(np.asarray(xi, dtype=float).reshape(6).copy())
+
+
+@numba.njit(cache=True, nogil=True)
+def se3_exp_compiled(xi):
+    """se3_exp compiled (the direct tracker's steps inside its compiled level loop use it)."""
+    w = xi[3:6].copy()
+    V = _so3_left_jacobian(w)
+    T = np.eye(4)
+    T[:3, :3] = _so3_exp(w)
+    for i in range(3):
+        T[i, 3] = V[i, 0] * xi[0] + V[i, 1] * xi[1] + V[i, 2] * xi[2]
+    return T
 
 
 def se3_log(T: np.ndarray) -> np.ndarray:
