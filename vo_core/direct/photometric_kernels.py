@@ -17,10 +17,18 @@ faster window linearization, a different teddy trajectory depending on the cache
 
 from __future__ import annotations
 
+import os
+
 import numba
 import numpy as np
 
 from vo_core.geometry.lie import se3_exp_compiled
+
+# window_linearization runs on numba's threads; with OpenMP they otherwise spin for a while after each call, which
+# doubled a run's CPU time (KITTI: 18 -> 31 s user for the same 16.6 s of wall time) and takes a core from the
+# tracking thread when mapping runs on its own. Read when OpenMP starts, at the first parallel call; a user's own
+# setting stands.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 # Columns of the per-term buffer that ``warp_residuals`` fills for ``normal_equations``.
 TERM_U, TERM_V, TERM_IDEPTH, TERM_GX, TERM_GY, TERM_RESIDUAL, TERM_WEIGHT, TERM_COLOR = range(8)
@@ -287,7 +295,7 @@ def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, col
     return best_u, best_v, quality
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def window_linearization(rays, center_rays, idepth, color, host_weight, host_start, images, R, t, R0, t0,
                          adjoint0, factor, offset, host_b, active, intrinsics, border, huber, outlier_energy,
                          weight_component):
@@ -314,23 +322,53 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
     are mapped into the keyframes' absolute parameters [delta (6, left increment in the world), a, b] by
     xi = Ad(T0_target_world) (delta_host - delta_target).
 
+    Hosts are linearized in parallel (each writes only its own points' rows and its own pairs' local systems); the
+    pairs' systems are then summed into the keyframes' in a fixed order, so the result does not depend on the
+    threads.
+
     Returns (energy, status, H_kk, b_k, H_pk, H_pp, b_p): status[target, i] is 0 in, 1 out (also for the point's
     own host and inactive hosts), 2 outlier; H_pk (P, 8K) is the transposed keyframe-point coupling; the
     points' blocks H_pp are scalars.
     """
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     n_kf = len(host_start) - 1
-    n_points, pattern = color.shape
+    n_points = color.shape[0]
     size = 8 * n_kf
     status = np.ones((n_kf, n_points), np.int8)
-    H_kk = np.zeros((size, size))
-    b_k = np.zeros(size)
     H_pk = np.zeros((n_points, size))
     H_pp = np.zeros(n_points)
     b_p = np.zeros(n_points)
-    M = np.zeros((9, 9))
-    m = np.zeros(9)
+    M_pairs = np.zeros((n_kf, n_kf, 9, 9))
+    m_pairs = np.zeros((n_kf, n_kf, 9))
+    host_energy = np.zeros(n_kf)
+    for h in numba.prange(n_kf):
+        if active[h]:
+            host_energy[h] = _linearize_host(
+                h, rays, center_rays, idepth, color, host_weight, host_start, images, R, t, R0, t0, adjoint0, factor,
+                offset, host_b, intrinsics, border, huber, outlier_energy, weight_component, status, H_pk, H_pp, b_p,
+                M_pairs[h], m_pairs[h])
+    H_kk = np.zeros((size, size))
+    b_k = np.zeros(size)
     A = np.zeros((9, 16))
+    energy = 0.0
+    for h in range(n_kf):
+        if not active[h]:
+            continue
+        energy += host_energy[h]
+        for tg in range(n_kf):
+            if tg != h:
+                _add_pair_system(M_pairs[h, tg], m_pairs[h, tg], A, adjoint0[tg], h, tg, H_kk, b_k)
+    return energy, status, H_kk, b_k, H_pk, H_pp, b_p
+
+
+@numba.njit(cache=True, nogil=True)
+def _linearize_host(h, rays, center_rays, idepth, color, host_weight, host_start, images, R, t, R0, t0, adjoint0,
+                    factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component, status, H_pk,
+                    H_pp, b_p, M_host, m_host):
+    """window_linearization's work for host keyframe h: its points' rows of status, H_pk, H_pp and b_p, and in
+    ``M_host[tg]`` / ``m_host[tg]`` each target's local 9-parameter system (upper triangle). Returns its energy."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    n_kf = len(host_start) - 1
+    pattern = color.shape[1]
     P = np.empty(6)
     Q = np.empty(6)
     local_coupling = np.empty(6)  # a point's coupling with the local pose increment xi
@@ -339,124 +377,120 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
     gx = np.empty(pattern)
     gy = np.empty(pattern)
     energy = 0.0
-    for h in range(n_kf):
-        if not active[h]:
+    for tg in range(n_kf):
+        if tg == h:
             continue
-        for tg in range(n_kf):
-            if tg == h:
+        packed = images[tg]
+        height, width = packed.shape[0], packed.shape[1]
+        Rc, tc, Rf, tf = R[h, tg], t[h, tg], R0[h, tg], t0[h, tg]
+        pair_factor, pair_offset = factor[h, tg], offset[h, tg]
+        M = M_host[tg]
+        m = m_host[tg]
+        for i in range(host_start[h], host_start[h + 1]):
+            point_energy = 0.0
+            out = False
+            for k in range(pattern):
+                x, y, z = warp_ray(Rc, tc, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
+                if not z > 0.0:
+                    out = True
+                    break
+                Ku = fx * x / z + cx
+                Kv = fy * y / z + cy
+                if not inside(Ku, Kv, width, height, border):
+                    out = True
+                    break
+                intensity, gx[k], gy[k] = bilinear3(packed, Ku, Kv)
+                residual = intensity - (pair_factor * color[i, k] + pair_offset)
+                target_weight = np.sqrt(weight_component / (weight_component + gx[k] * gx[k] + gy[k] * gy[k]))
+                gradient_weight = 0.5 * (target_weight + host_weight[i, k])
+                magnitude = abs(residual)
+                huber_w = 1.0 if magnitude <= huber else huber / magnitude
+                point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
+                residuals[k] = residual
+                weights[k] = huber_w * gradient_weight * gradient_weight
+            if out:
                 continue
-            packed = images[tg]
-            height, width = packed.shape[0], packed.shape[1]
-            Rc, tc, Rf, tf = R[h, tg], t[h, tg], R0[h, tg], t0[h, tg]
-            pair_factor, pair_offset = factor[h, tg], offset[h, tg]
-            M[:] = 0.0
-            m[:] = 0.0
-            for i in range(host_start[h], host_start[h + 1]):
-                point_energy = 0.0
-                out = False
-                for k in range(pattern):
-                    x, y, z = warp_ray(Rc, tc, rays[i, k, 0], rays[i, k, 1], rays[i, k, 2], idepth[i])
-                    if not z > 0.0:
-                        out = True
-                        break
-                    Ku = fx * x / z + cx
-                    Kv = fy * y / z + cy
-                    if not inside(Ku, Kv, width, height, border):
-                        out = True
-                        break
-                    intensity, gx[k], gy[k] = bilinear3(packed, Ku, Kv)
-                    residual = intensity - (pair_factor * color[i, k] + pair_offset)
-                    target_weight = np.sqrt(weight_component / (weight_component + gx[k] * gx[k] + gy[k] * gy[k]))
-                    gradient_weight = 0.5 * (target_weight + host_weight[i, k])
-                    magnitude = abs(residual)
-                    huber_w = 1.0 if magnitude <= huber else huber / magnitude
-                    point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
-                    residuals[k] = residual
-                    weights[k] = huber_w * gradient_weight * gradient_weight
-                if out:
-                    continue
-                if point_energy > outlier_energy:
-                    status[tg, i] = 2
-                    energy += outlier_energy
-                    continue
-                status[tg, i] = 0
-                energy += point_energy
-                # The pattern's sums: gradient outer products, affine and residual terms.
-                sxx = sxy = syy = sxa = sya = sx = sy = saa = sa = s1 = sxr = syr = sar = sr = 0.0
-                for k in range(pattern):
-                    w = weights[k]
-                    r = residuals[k]
-                    ja = -pair_factor * (color[i, k] - host_b[h])  # d r / d a_target
-                    wx = w * gx[k]
-                    wy = w * gy[k]
-                    sxx += wx * gx[k]
-                    sxy += wx * gy[k]
-                    syy += wy * gy[k]
-                    sxa += wx * ja
-                    sya += wy * ja
-                    sx += wx
-                    sy += wy
-                    saa += w * ja * ja
-                    sa += w * ja
-                    s1 += w
-                    sxr += wx * r
-                    syr += wy * r
-                    sar += w * ja * r
-                    sr += w * r
-                # The pixel's motion at the centre and the first estimate: P = d Ku / d xi, Q = d Kv / d xi.
-                x0, y0, z0 = warp_ray(Rf, tf, center_rays[i, 0], center_rays[i, 1], center_rays[i, 2], idepth[i])
-                if not z0 > 0.0:
-                    x0, y0, z0 = warp_ray(Rc, tc, center_rays[i, 0], center_rays[i, 1], center_rays[i, 2],
-                                          idepth[i])
-                u = x0 / z0
-                v = y0 / z0
-                d = idepth[i] / z0  # the new inverse depth 1 / Z_target
-                P[0], P[1], P[2] = fx * d, 0.0, -fx * d * u
-                P[3], P[4], P[5] = -fx * u * v, fx * (1.0 + u * u), -fx * v
-                Q[0], Q[1], Q[2] = 0.0, fy * d, -fy * d * v
-                Q[3], Q[4], Q[5] = -fy * (1.0 + v * v), fy * u * v, fy * u
-                ddu = fx * (tf[0] - u * tf[2]) / z0  # d (Ku, Kv) / d (host inverse depth)
-                ddv = fy * (tf[1] - v * tf[2]) / z0
+            if point_energy > outlier_energy:
+                status[tg, i] = 2
+                energy += outlier_energy
+                continue
+            status[tg, i] = 0
+            energy += point_energy
+            # The pattern's sums: gradient outer products, affine and residual terms.
+            sxx = sxy = syy = sxa = sya = sx = sy = saa = sa = s1 = sxr = syr = sar = sr = 0.0
+            for k in range(pattern):
+                w = weights[k]
+                r = residuals[k]
+                ja = -pair_factor * (color[i, k] - host_b[h])  # d r / d a_target
+                wx = w * gx[k]
+                wy = w * gy[k]
+                sxx += wx * gx[k]
+                sxy += wx * gy[k]
+                syy += wy * gy[k]
+                sxa += wx * ja
+                sya += wy * ja
+                sx += wx
+                sy += wy
+                saa += w * ja * ja
+                sa += w * ja
+                s1 += w
+                sxr += wx * r
+                syr += wy * r
+                sar += w * ja * r
+                sr += w * r
+            # The pixel's motion at the centre and the first estimate: P = d Ku / d xi, Q = d Kv / d xi.
+            x0, y0, z0 = warp_ray(Rf, tf, center_rays[i, 0], center_rays[i, 1], center_rays[i, 2], idepth[i])
+            if not z0 > 0.0:
+                x0, y0, z0 = warp_ray(Rc, tc, center_rays[i, 0], center_rays[i, 1], center_rays[i, 2],
+                                      idepth[i])
+            u = x0 / z0
+            v = y0 / z0
+            d = idepth[i] / z0  # the new inverse depth 1 / Z_target
+            P[0], P[1], P[2] = fx * d, 0.0, -fx * d * u
+            P[3], P[4], P[5] = -fx * u * v, fx * (1.0 + u * u), -fx * v
+            Q[0], Q[1], Q[2] = 0.0, fy * d, -fy * d * v
+            Q[3], Q[4], Q[5] = -fy * (1.0 + v * v), fy * u * v, fy * u
+            ddu = fx * (tf[0] - u * tf[2]) / z0  # d (Ku, Kv) / d (host inverse depth)
+            ddv = fy * (tf[1] - v * tf[2]) / z0
+            for a in range(6):
+                ua = sxx * P[a] + sxy * Q[a]
+                va = sxy * P[a] + syy * Q[a]
+                for b in range(a, 6):
+                    M[a, b] += P[b] * ua + Q[b] * va
+                M[a, 6] += P[a] * sxa + Q[a] * sya
+                gsum = P[a] * sx + Q[a] * sy
+                M[a, 7] -= gsum
+                M[a, 8] += pair_factor * gsum
+                m[a] += P[a] * sxr + Q[a] * syr
+            M[6, 6] += saa
+            M[6, 7] -= sa
+            M[6, 8] += pair_factor * sa
+            M[7, 7] += s1
+            M[7, 8] -= pair_factor * s1
+            M[8, 8] += pair_factor * pair_factor * s1
+            m[6] += sar
+            m[7] -= sr
+            m[8] += pair_factor * sr
+            H_pp[i] += ddu * ddu * sxx + 2.0 * ddu * ddv * sxy + ddv * ddv * syy
+            b_p[i] += ddu * sxr + ddv * syr
+            # Coupling with the point's inverse depth, mapped into the absolute parameters at once.
+            cu = ddu * sxx + ddv * sxy
+            cv = ddu * sxy + ddv * syy
+            gd = ddu * sx + ddv * sy
+            for a in range(6):
+                local_coupling[a] = P[a] * cu + Q[a] * cv
+            for j in range(6):
+                coupling = 0.0
                 for a in range(6):
-                    ua = sxx * P[a] + sxy * Q[a]
-                    va = sxy * P[a] + syy * Q[a]
-                    for b in range(a, 6):
-                        M[a, b] += P[b] * ua + Q[b] * va
-                    M[a, 6] += P[a] * sxa + Q[a] * sya
-                    gsum = P[a] * sx + Q[a] * sy
-                    M[a, 7] -= gsum
-                    M[a, 8] += pair_factor * gsum
-                    m[a] += P[a] * sxr + Q[a] * syr
-                M[6, 6] += saa
-                M[6, 7] -= sa
-                M[6, 8] += pair_factor * sa
-                M[7, 7] += s1
-                M[7, 8] -= pair_factor * s1
-                M[8, 8] += pair_factor * pair_factor * s1
-                m[6] += sar
-                m[7] -= sr
-                m[8] += pair_factor * sr
-                H_pp[i] += ddu * ddu * sxx + 2.0 * ddu * ddv * sxy + ddv * ddv * syy
-                b_p[i] += ddu * sxr + ddv * syr
-                # Coupling with the point's inverse depth, mapped into the absolute parameters at once.
-                cu = ddu * sxx + ddv * sxy
-                cv = ddu * sxy + ddv * syy
-                gd = ddu * sx + ddv * sy
-                for a in range(6):
-                    local_coupling[a] = P[a] * cu + Q[a] * cv
-                for j in range(6):
-                    coupling = 0.0
-                    for a in range(6):
-                        coupling += adjoint0[tg, a, j] * local_coupling[a]
-                    H_pk[i, 8 * h + j] += coupling
-                    H_pk[i, 8 * tg + j] -= coupling
-                c_a = ddu * sxa + ddv * sya
-                H_pk[i, 8 * h + 6] -= c_a
-                H_pk[i, 8 * tg + 6] += c_a
-                H_pk[i, 8 * tg + 7] -= gd
-                H_pk[i, 8 * h + 7] += pair_factor * gd
-            _add_pair_system(M, m, A, adjoint0[tg], h, tg, H_kk, b_k)
-    return energy, status, H_kk, b_k, H_pk, H_pp, b_p
+                    coupling += adjoint0[tg, a, j] * local_coupling[a]
+                H_pk[i, 8 * h + j] += coupling
+                H_pk[i, 8 * tg + j] -= coupling
+            c_a = ddu * sxa + ddv * sya
+            H_pk[i, 8 * h + 6] -= c_a
+            H_pk[i, 8 * tg + 6] += c_a
+            H_pk[i, 8 * tg + 7] -= gd
+            H_pk[i, 8 * h + 7] += pair_factor * gd
+    return energy
 
 
 @numba.njit(cache=True, nogil=True)
