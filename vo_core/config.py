@@ -57,11 +57,11 @@ class HybridConfig:
     # 0.0153 m); the recoveries that rightly overruled one found 13 % (teddy 100:20).
     overrule_share: float = 0.10
     # After missed frames, a direct pose that nothing confirms (no feature pose, or one too weak to overrule it) is
-    # kept only where it covers at least this share of the image motion that the last motion, kept up over the
-    # time that passed, predicts (ours: half). Below, it is the tracker's lock onto the view it left, the classic
-    # failure of direct alignment after a large jump: parking with 9.15 m dropped, the direct pose stayed by the
-    # look-alike parked cars the camera had passed and every later frame was 9.1 m off, reported only as
-    # unverified; with 3.15 m dropped the right direct pose lay 0.3 px from the prediction.
+    # kept only where it lies within this share of the image motion that the last motion, kept up over the time
+    # that passed, predicts, from the predicted pose (ours: half). Further, it is the tracker's lock onto the view it
+    # left, the classic failure of direct alignment after a large jump: parking with 9.15 m dropped, the direct pose
+    # stayed by the look-alike parked cars the camera had passed and every later frame was 9.1 m off, reported
+    # only as unverified; with 3.15 m dropped the right direct pose lay 0.3 px from the prediction.
     gap_motion_share: float = 0.5
     # Frames in a row without a pose (no direct tracking, no recovery) before the direct map initializes again
     # from scratch, at a new scale (ours; recovery keeps being tried meanwhile, and after).

@@ -357,13 +357,26 @@ class Odometry:
         self._set_matches(result, outcome, tracking.reference)
         self._continue_from(frame, outcome, tracking, result)
 
+    def _off_prediction(self, frame: DirectFrame, tracking: DirectTracking,
+                        T_world_cam: np.ndarray) -> tuple[float, float, float] | None:
+        """After missed frames, how a pose for the frame compares with the last motion kept up over the time that
+        passed, in image motion of the reference's points: (predicted, found, found pose to predicted pose) in
+        pixels, from the last posed frame; None without missed frames or a last motion."""
+        predicted = self._predicted_pose(frame)
+        if tracking.intervals_missed is None or predicted is None or len(self.posed) < 2:
+            return None
+        points, T_world_last = tracking.reference.points_world(), self.posed[-1][1]
+        return (image_motion_px(self.camera, points, T_world_last, predicted),
+                image_motion_px(self.camera, points, T_world_last, T_world_cam),
+                image_motion_px(self.camera, points, predicted, T_world_cam))
+
     def _suspect_stands(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement, outcome,
                         result: FrameResult) -> bool:
         """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
         best candidate of one that fell short) confirms it where the two agree; it overrules it only with a
         conclusive share of the map points in view; below that share, or with no feature pose at all, the direct
         pose is kept, reported as unverified, unless the search around it finds almost none of the points the map
-        expects there, or, after missed frames, it stayed behind the motion the last motion predicts. A frame with
+        expects there, or, after a jump, it does not stand on its own (``_may_stand_unconfirmed``). A frame with
         too few features to say anything keeps it too (FDMO's point: the direct estimate is then all there is).
         Where it is not kept, the judgement gets the reason."""
         check = {**judgement.details(tracking), **outcome.details()}
@@ -382,7 +395,7 @@ class Odometry:
                 judgement.reason += (f"; the feature map disagrees (the direct pose explains {explained:.0%} of its "
                                      "matches)")
                 return False
-            if not self._moved_as_predicted(frame, tracking, judgement, check):
+            if not self._may_stand_unconfirmed(frame, tracking, judgement, check):
                 judgement.reason += (f"; the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} "
                                      "of the points in view) is too weakly supported to confirm it")
                 return False
@@ -402,7 +415,7 @@ class Odometry:
             judgement.reason += (f"; the feature map finds {around.num_inliers} of the {around.in_view} points it "
                                  "expects in view at the direct pose")
             return False
-        if not self._moved_as_predicted(frame, tracking, judgement, check):
+        if not self._may_stand_unconfirmed(frame, tracking, judgement, check):
             judgement.reason += ", and the feature map cannot place the frame"
             return False
         # No feature pose, and nothing that contradicts the converged alignment: after a long forward jump the
@@ -412,25 +425,37 @@ class Odometry:
             **check, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
         return True
 
-    def _moved_as_predicted(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                            check: dict) -> bool:
-        """Whether a direct pose that nothing confirms may stand by the motion: after missed frames it must cover
-        ``gap_motion_share`` of the image motion (of the reference's points) that the last motion, kept up over the
-        time that passed, predicts. Direct alignment after a large jump locks onto the view it left, where the
-        images look alike (parking's rows of parked cars), and stays behind; nothing else tells that lock from a
-        right pose when the feature map cannot place the frame. Frames without missed ones, or without a last
-        motion, pass. Where it fails, the judgement gets the reason; ``check`` gets the measures either way."""
-        predicted = self._predicted_pose(frame)
-        if tracking.intervals_missed is None or predicted is None or len(self.posed) < 2:
+    def _may_stand_unconfirmed(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                               check: dict) -> bool:
+        """Whether a direct pose that nothing confirms may stand after a jump. Direct alignment after a large jump
+        locks onto what looks alike near where it started (parking's rows of parked cars), and nothing else tells
+        that lock from a right pose when the feature map cannot place the frame:
+
+        - after missed frames, the motion the time implies does: the pose must lie within ``gap_motion_share`` of the
+          image motion (of the reference's points) that the last motion, kept up over the time that passed, predicts,
+          from the predicted pose (it stayed behind, or went far past it);
+        - after a sudden motion the timestamps do not show, there is no such prediction: the pose must fit the images
+          as well as the last frames did (DSO's retrack threshold; teddy with 30 frames dropped and retimed, the lock
+          left an RMSE of 13.7 against 6.0).
+
+        Other frames pass. Where it fails, the judgement gets the reason; ``check`` gets the measures either way."""
+        if tracking.intervals_missed is None:
+            if not judgement.jump or tracking.good_enough:
+                return True
+            judgement.reason += (f"; after the sudden motion the direct pose fits worse than the last frame (RMSE "
+                                 f"{tracking.rmse_after:.2f} against {tracking.last_rmse:.2f})")
+            return False
+        off = self._off_prediction(frame, tracking, tracking.T_world_cam)
+        if off is None:
             return True
-        points, T_world_last = tracking.reference.points_world(), self.posed[-1][1]
-        expected_px = image_motion_px(self.camera, points, T_world_last, predicted)
-        found_px = image_motion_px(self.camera, points, T_world_last, tracking.T_world_cam)
-        check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1))
-        if not found_px < self.config.fdmo.gap_motion_share * expected_px:
+        expected_px, found_px, apart_px = off
+        check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1),
+                     from_prediction_px=round(apart_px, 1))
+        if not apart_px > self.config.fdmo.gap_motion_share * expected_px:
             return True
         judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
-                             f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px")
+                             f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px ({apart_px:.0f} "
+                             "px apart)")
         return False
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
@@ -510,9 +535,9 @@ class Odometry:
     def _without_recovery(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                           result: FrameResult) -> None:
         """--method direct: DSO's behaviour, reported. A lost frame reinitializes at once; a diverged one is
-        reported and kept (there is nothing to recover from), and so is one after missed frames (nothing can check
-        it: teddy with 20-45 frames dropped ends 0.09-0.23 m off, and would say nothing); another suspect one is
-        kept (DSO's retrack threshold: 4 % of teddy's frames, nearly all right)."""
+        reported and kept (there is nothing to recover from), and so is one after missed frames or a sudden motion
+        (nothing can check it: teddy with 20-45 frames dropped ends 0.09-0.23 m off, and would say nothing); another
+        suspect one is kept (DSO's retrack threshold: 4 % of teddy's frames, nearly all right)."""
         if judgement.verdict is Verdict.LOST:
             self._report_failure(frame, tracking, judgement, result)
             origin = self.direct.last_pose.copy()
@@ -520,7 +545,7 @@ class Odometry:
             self.direct.reinitialize(origin)
             self.direct.initialize(frame, result)
             return
-        if judgement.verdict is Verdict.DIVERGED or tracking.intervals_missed is not None:
+        if judgement.verdict is Verdict.DIVERGED or judgement.jump:
             _emit(result, EventKind.DIVERGENCE_DETECTED,
                   {**judgement.details(tracking), "recovery": "none (--method direct keeps the pose)"})
         self._accept(frame, tracking, result)

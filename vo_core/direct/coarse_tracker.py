@@ -239,17 +239,27 @@ class CoarseTracker:
     def _reached_before(self, level: int, T_frame_ref: np.ndarray, optima: list[np.ndarray]) -> bool:
         """Whether the level's points land within ``same_coarse_optimum_px`` (median, pixels of the level) of where
         one of ``optima`` puts them."""
+        tolerance = self.config.same_coarse_optimum_px
+        return any(self.image_motion_px(T_frame_ref, T, level) <= tolerance for T in optima)
+
+    def image_motion_px(self, T_a_ref: np.ndarray, T_b_ref: np.ndarray, level: int = 0) -> float:
+        """Median distance, in pixels of ``level``, between where the reference's points land in a frame at pose a
+        and in one at pose b (those in front of both; inf with none)."""
         points = self.levels[level]
         fx, fy, cx, cy = points.intrinsics
 
-        def pixels(T: np.ndarray) -> np.ndarray:
+        def pixels(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             warped = points.centre_rays @ T[:3, :3].T + points.centre_idepth[:, None] * T[:3, 3]
             with np.errstate(divide="ignore", invalid="ignore"):
-                return np.stack([fx * warped[:, 0] / warped[:, 2] + cx, fy * warped[:, 1] / warped[:, 2] + cy], 1)
+                uv = np.stack([fx * warped[:, 0] / warped[:, 2] + cx, fy * warped[:, 1] / warped[:, 2] + cy], 1)
+            return uv, warped[:, 2] > 0
 
-        here = pixels(T_frame_ref)
-        tolerance = self.config.same_coarse_optimum_px
-        return any(np.nanmedian(np.linalg.norm(here - pixels(T), axis=1)) <= tolerance for T in optima)
+        uv_a, front_a = pixels(T_a_ref)
+        uv_b, front_b = pixels(T_b_ref)
+        front = front_a & front_b
+        if not front.any():
+            return float("inf")
+        return float(np.median(np.linalg.norm(uv_a[front] - uv_b[front], axis=1)))
 
     @staticmethod
     def _result(success, T, ab, rmse_levels, rmse_before, flow, num_terms) -> TrackingResult:

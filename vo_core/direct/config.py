@@ -68,6 +68,13 @@ class TrackerConfig:
     # guess of the same frame ended is dropped: its finer levels would repeat that guess's. On teddy's hard frames
     # all 31 guesses ran every level (0.2-0.5 s a frame) though most met in a few coarse optima.
     same_coarse_optimum_px: float = 0.05
+    # Ours: the image motion of the last tracked frames (how far the reference's points moved from one frame to the
+    # next, median) that a frame's motion is compared with (divergence.py's sudden motion), and how many it needs.
+    motion_history: int = 10
+    min_motion_history: int = 3
+    # Ours: after missed frames, the guess from the last motion kept up over the time that passed wins over a guess
+    # whose final RMSE is lower by less than this share: photometry cannot tell such poses apart (periodic scenes).
+    prediction_tie: float = 0.02
     # Ours: a frame further from the last tracked one than 1.5 times the interval between the last two comes after
     # missed frames (a driver's drop, --drop), one nearer than 1/1.5 of it after a jump: the motion hypotheses then
     # take the time into account (motion_model.py). Regular timestamps (jitter well under half an interval) never
