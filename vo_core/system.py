@@ -429,14 +429,11 @@ class Odometry:
             # A feature pose confirms only as a recovery (its inliers and share), and overrules only with a
             # conclusive share; a weaker one, agreeing or not, leaves the direct pose to the motion check.
             conclusive = outcome.succeeded if agrees else pose.found_fraction >= self.config.fdmo.overrule_share
-            if agrees and conclusive:
-                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True})
-                return True
-            if conclusive:
+            if conclusive and not agrees:
                 judgement.reason += (f"; the feature map disagrees (the direct pose explains {explained:.0%} of its "
                                      "matches)")
                 return False
-            if not self._may_stand_unconfirmed(frame, tracking, judgement, check):
+            if not conclusive and not self._may_stand_unconfirmed(frame, tracking, judgement, check):
                 judgement.reason += (f"; the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} "
                                      "of the points in view) is too weakly supported to confirm it")
                 return False

@@ -181,6 +181,13 @@ def _mean(energy, num_terms):
 
 
 @numba.njit(cache=True, nogil=True)
+def _scaled_normal_equations(terms, count, intrinsics, factor, reference_b, step_scale):
+    """normal_equations in the scaled parameters the steps are taken in (DSO's SCALE_*)."""
+    H, b = normal_equations(terms, count, intrinsics[0], intrinsics[1], factor, reference_b)
+    return H * np.outer(step_scale, step_scale), b * step_scale
+
+
+@numba.njit(cache=True, nogil=True)
 def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
                 cutoff, max_saturated_ratio, max_cutoff_repeat, step_scale, initial_lambda, extrapolation_limit,
                 lambda_decrease, lambda_increase, max_iterations, min_increment_norm):
@@ -202,10 +209,7 @@ def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure
             rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
             cutoff * repeat)
     mean_energy = _mean(energy, num_terms)
-    fx, fy = intrinsics[0], intrinsics[1]
-    H, b = normal_equations(terms, count, fx, fy, factor, reference_ab[1])
-    H = H * np.outer(step_scale, step_scale)
-    b = b * step_scale
+    H, b = _scaled_normal_equations(terms, count, intrinsics, factor, reference_ab[1], step_scale)
     lam = initial_lambda
     for _ in range(max_iterations):
         H_damped = H.copy()
@@ -228,9 +232,7 @@ def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure
         mean_new = _mean(energy_new, num_new)
         if mean_new < mean_energy:
             T, ab, mean_energy, num_terms = T_new, ab_new, mean_new, num_new
-            H, b = normal_equations(terms_new, count_new, fx, fy, factor_new, reference_ab[1])
-            H = H * np.outer(step_scale, step_scale)
-            b = b * step_scale
+            H, b = _scaled_normal_equations(terms_new, count_new, intrinsics, factor_new, reference_ab[1], step_scale)
             lam *= lambda_decrease
         else:
             lam = max(lam * lambda_increase, extrapolation_limit)
