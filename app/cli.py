@@ -250,10 +250,12 @@ def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, 
 def _live_overrides(args: argparse.Namespace) -> list[str]:
     """--mapping, and what live input changes, as settings (the user's own --set come after, and win). Live input
     maps on its own thread and does not wait for keyframes (DSO's real-time mode), nor for DSO's rotation guesses
-    (direct.tracker.rotation_hypotheses); a run with the page open maps on its own thread."""
+    (direct.tracker.rotation_hypotheses), nor for the new start's epipolar witness (it runs beside mapping); a run
+    with the page open maps on its own thread."""
     mode = args.mapping or ("threaded" if args.realtime or args.viser else "sync")
     overrides = [f"mapping.threaded={str(mode == 'threaded').lower()}"]
-    live = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false"]
+    live = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false",
+            "direct.start_check.epipolar.beside_mapping=true"]
     return overrides + (live if args.realtime else [])
 
 

@@ -1,16 +1,19 @@
 """The start check's independent witness (vo_core/direct/epipolar_check.py): the ORB matches between a start's
 keyframes agree with their true motion, contradict a wrong one with the reason, and say nothing where the views
-are too close to tell."""
+are too close to tell. Beside mapping (live input), the start stays on probation until the witness answers."""
 
 from __future__ import annotations
 
+import threading
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from vo_core.direct.config import EpipolarCheckConfig
+from vo_core.direct.config import EpipolarCheckConfig, StartCheckConfig
 from vo_core.direct.epipolar_check import EpipolarCheck
+from vo_core.direct.start_check import StartCheck
+from vo_core.direct.window import WindowReport
 from vo_core.geometry.lie import se3, so3_exp
 from vo_core.synthetic import make_sequence
 
@@ -65,3 +68,42 @@ def test_views_too_close_to_tell_say_nothing(room):
     keyframes = keyframes_at(room, [0, 1, 2], {i: np.eye(4) if i else room[0].ground_truth.poses[0] for i in (0, 1, 2)})
     reason, details = EpipolarCheck(EpipolarCheckConfig()).disagreement(keyframes, room[0].camera)
     assert reason is None and details["epipolar_pairs"] == 0
+
+
+def probation_with_witness_beside_mapping(room, poses):
+    """A start check whose witness runs beside mapping, taken through its window optimizations (all passing the
+    direct measures) with the room's keyframes at ``poses``; returns the check after the last one."""
+    config = StartCheckConfig(epipolar=EpipolarCheckConfig(beside_mapping=True))
+    check = StartCheck(config, KEYFRAMES[0], KEYFRAMES[1], "features")
+    keyframes = [SimpleNamespace(**vars(k), active_idepth=np.ones(10), camera=room[0].camera)
+                 for k in keyframes_at(room, KEYFRAMES, poses)]
+    report = WindowReport(6, 2.0, 1.0, 100, 1000, 10, np.ones(100, bool), 1.0)
+    for _ in range(config.window_optimizations + 1):  # the hand-over's own, then the probation's
+        assert check.observe(report, keyframes) is None
+    return check
+
+
+def test_a_witness_beside_mapping_keeps_the_start_on_probation_until_it_refuses_it(room):
+    check = probation_with_witness_beside_mapping(room, wrong_poses(room))
+    assert check.witness is not None
+    check.witness.result(timeout=60)
+    reason = check.witness_failure()
+    assert reason is not None and "contradict" in reason
+    assert not check.passed  # a refused start never passes
+    assert check.details()["epipolar_disagreeing"] >= 2  # its measures join the event's
+
+
+def test_a_witness_beside_mapping_that_agrees_lets_the_start_pass_once_it_answered(room, monkeypatch):
+    answer = threading.Event()
+    disagreement = EpipolarCheck.disagreement
+
+    def held_back(self, keyframes, camera):
+        answer.wait(timeout=60)
+        return disagreement(self, keyframes, camera)
+
+    monkeypatch.setattr(EpipolarCheck, "disagreement", held_back)
+    check = probation_with_witness_beside_mapping(room, None)
+    assert not check.passed and check.witness_failure() is None  # still on probation, not refused
+    answer.set()
+    check.witness.result(timeout=60)
+    assert check.witness_failure() is None and check.passed

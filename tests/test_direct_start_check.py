@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from vo_core.config import load_config
+from vo_core.direct.epipolar_check import EpipolarCheck
 from vo_core.direct.initialization import InitializationResult
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.events import EventKind
@@ -88,14 +89,16 @@ class TwinStart:
                                     details={"model": "H"})
 
 
-def run_with_start(wrong: bool):
+def run_with_start(wrong: bool, overrides: tuple[str, ...] = ()):
     sequence = make_sequence("planar", 45, 0, WIDTH, HEIGHT)
-    odometry = Odometry(load_config(overrides=["method=direct"]), sequence.camera)
+    odometry = Odometry(load_config(overrides=["method=direct", *overrides]), sequence.camera)
     direct = odometry.direct
     direct.make_initializer = lambda failed: TwinStart(sequence, wrong=wrong) if failed is None else TwinStart(
         sequence, wrong=False)
     direct.initializer = direct.make_initializer(None)
-    return [odometry.track(frame) for frame in sequence]
+    results = [odometry.track(frame) for frame in sequence]
+    odometry.close()
+    return results
 
 
 @pytest.fixture(scope="module")
@@ -137,3 +140,27 @@ def test_auto_uses_the_coarse_initializer_after_a_failed_feature_attempt():
     assert make("coarse").name == "features"
     fixed = load_config(overrides=["direct.initializer=features"])
     assert initializer_factory(fixed.direct, fixed.init, camera, 0)("features").name == "features"
+
+
+def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answered(monkeypatch):
+    """The epipolar witness beside mapping (live input): its refusal discards the start at a later frame, on the
+    tracking thread, with the witness's reason and every pose the start gave retracted. The mapping thread waits for
+    keyframes here, so that the probation ends at the same frame whatever the machine's speed."""
+    refusals = []
+
+    def refuse_the_first_start(self, keyframes, camera):
+        refusals.append(keyframes[0].frame_index)
+        reason = "the ORB matches of 3 of 3 keyframe pairs contradict the start's motion" if len(refusals) == 1 else None
+        return reason, {"epipolar_pairs": 3, "epipolar_disagreeing": 3 if reason else 0}
+
+    monkeypatch.setattr(EpipolarCheck, "disagreement", refuse_the_first_start)
+    results = run_with_start(wrong=False, overrides=("mapping.threaded=true",
+                                                     "direct.start_check.epipolar.beside_mapping=true"))
+    rejected = events_of(results, EventKind.INITIALIZATION_REJECTED)
+    assert len(rejected) == 1 and "contradict" in rejected[0].details["reason"]
+    assert rejected[0].details["epipolar_disagreeing"] == 3  # the witness's measures
+    started = events_of(results, EventKind.INITIALIZATION_SUCCEEDED)[0].frame_index
+    posed_in_it = [r.timestamp for r in results
+                   if started <= r.frame_index < rejected[0].frame_index and r.T_world_cam is not None]
+    assert posed_in_it and rejected[0].details["retracted"] == posed_in_it
+    assert any(e.frame_index == rejected[0].frame_index for e in events_of(results, EventKind.INITIALIZATION_STARTED))

@@ -16,7 +16,8 @@ from vo_core.events import EventKind, FrameResult
 from vo_core.mapping_thread import MappingThread
 
 THREADED = ["mapping.threaded=true"]
-LIVE = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false"]
+LIVE = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false",
+        "direct.start_check.epipolar.beside_mapping=true"]
 
 
 class Recorder:

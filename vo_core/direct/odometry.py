@@ -397,10 +397,18 @@ class DirectOdometry:
             return None
         return keyframe
 
+    @property
+    def failed_start(self) -> str | None:
+        """Why the start on probation fails: at a window optimization, or by its witness beside mapping."""
+        if self.start_failure is None and self.start_check is not None:
+            return self.start_check.witness_failure()
+        return self.start_failure
+
     def discard_failed_start(self, frame: DirectFrame, result: FrameResult) -> bool:
-        """Where a keyframe mapped off the tracking thread failed the start on probation: the start is discarded
-        and the initializer starts again from this frame (which gets no pose). Returns whether it was."""
-        if self.start_failure is None:
+        """Where a keyframe mapped off the tracking thread, or the witness beside mapping, failed the start on
+        probation: the start is discarded and the initializer starts again from this frame (which gets no pose).
+        Returns whether it was."""
+        if self.failed_start is None:
             return False
         self._discard_start(frame, result)
         return True
@@ -659,7 +667,7 @@ class DirectOdometry:
         trajectory), and the initializer starts again from this frame."""
         check = self.start_check
         result.events.append(_event(EventKind.INITIALIZATION_REJECTED, frame,
-                                    {"reason": self.start_failure, **check.details(),
+                                    {"reason": self.failed_start, **check.details(),
                                      "retracted": [t for t in check.posed_timestamps if t != frame.timestamp]}))
         result.T_world_cam, result.tracked, result.is_keyframe, result.points_2d = None, False, False, None
         self._forget_map(failed_initializer=check.initializer)

@@ -15,11 +15,14 @@ hand-over's own, and is discarded at the first of them where:
   (points whose initial depths were off: half the residuals on a synthetic room with the coarse initializer),
   which the window optimizations then remove.
 * at the last of them too: the ORB matches between the window's keyframes contradict the direct poses' motion
-  (epipolar_check.py), the one measure that does not come from the direct map itself.
+  (epipolar_check.py), the one measure that does not come from the direct map itself. With live input this
+  witness runs on a thread of its own (``EpipolarCheckConfig.beside_mapping``): the start stays on probation until
+  it answers, and fails when it does (``witness_failure``), while mapping goes on.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,16 +43,30 @@ class StartCheck:
     energies: list[float] = field(default_factory=list)  # their energies per residual in view
     measures: dict = field(default_factory=dict)  # for the event: the latest energy and inliers, the worst change
     posed_timestamps: list[float] = field(default_factory=list)  # the frames posed in this start's map so far
+    witness: Future | None = None  # the epipolar witness running beside mapping: (reason or None, measures)
 
     @property
     def passed(self) -> bool:
-        return self.optimizations >= self.config.window_optimizations
+        if self.optimizations < self.config.window_optimizations:
+            return False
+        return self.witness is None or (self.witness.done() and self.witness_failure() is None)
+
+    def witness_failure(self) -> str | None:
+        """Why the witness beside mapping refuses the start, once it has answered (its measures join the
+        event's); None while it runs, where it agrees, and where none runs."""
+        if self.witness is None or not self.witness.done():
+            return None
+        reason, measures = self.witness.result()
+        self.measures.update(measures)
+        return reason
 
     def observe(self, report: WindowReport, keyframes: list) -> str | None:
         """One window optimization's outcome; returns why the start fails, or None."""
         parallax = self._parallax(keyframes)
         if self.handover_parallax is None:
             self.handover_parallax = parallax
+            return None
+        if self.witness is not None:  # past the last optimization: only the witness has yet to answer
             return None
         self.optimizations += 1
         self.energies.append(report.energy_after / max(report.residuals, 1))
@@ -62,17 +79,23 @@ class StartCheck:
         config = self.config
         if change is not None and change > config.max_parallax_change:
             return f"the first keyframe pair's parallax changed {change:.1f}x since the hand-over"
-        if not self.passed:
+        if self.optimizations < config.window_optimizations:
             return None
         if growth > config.max_energy_growth:
             return f"the energy per residual grew {growth:.1f}x during the first window optimizations"
         if inliers < config.min_inlier_ratio:
             return f"inlier ratio {inliers:.2f} below {config.min_inlier_ratio}"
-        if config.epipolar.enabled:
-            reason, measures = EpipolarCheck(config.epipolar).disagreement(keyframes, keyframes[0].camera)
-            self.measures.update(measures)
-            return reason
-        return None
+        if not config.epipolar.enabled:
+            return None
+        if config.epipolar.beside_mapping:
+            executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-start-witness")
+            self.witness = executor.submit(EpipolarCheck(config.epipolar).disagreement,
+                                           [_KeyframeView(k) for k in keyframes], keyframes[0].camera)
+            executor.shutdown(wait=False)  # its thread ends with the witness
+            return None
+        reason, measures = EpipolarCheck(config.epipolar).disagreement(keyframes, keyframes[0].camera)
+        self.measures.update(measures)
+        return reason
 
     def posed(self, timestamp: float) -> None:
         """A frame got a pose in this start's map while it is on probation (retracted if the start fails)."""
@@ -93,6 +116,14 @@ class StartCheck:
             return None
         baseline = np.linalg.norm(second.T_world_cam[:3, 3] - first.T_world_cam[:3, 3])
         return float(baseline * np.median(first.active_idepth))
+
+
+class _KeyframeView:
+    """What the witness reads of a keyframe, as it was when the witness started (the window goes on moving)."""
+
+    def __init__(self, keyframe):
+        self.frame_index, self.image = keyframe.frame_index, keyframe.image
+        self.T_world_cam = keyframe.T_world_cam.copy()
 
 
 def _change(value: float | None, reference: float | None) -> float | None:
