@@ -142,10 +142,12 @@ def test_auto_uses_the_coarse_initializer_after_a_failed_feature_attempt():
     assert initializer_factory(fixed.direct, fixed.init, camera, 0)("features").name == "features"
 
 
-def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answered(monkeypatch):
+@pytest.mark.parametrize("threaded", [True, False])
+def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answered(monkeypatch, threaded):
     """The epipolar witness beside mapping (live input): its refusal discards the start at a later frame, on the
-    tracking thread, with the witness's reason and every pose the start gave retracted. The mapping thread waits for
-    keyframes here, so that the probation ends at the same frame whatever the machine's speed."""
+    tracking thread, with the witness's reason and every pose the start gave retracted; with a mapping thread and
+    without. The mapping thread waits for keyframes here, so that the probation ends at the same frame whatever the
+    machine's speed."""
     refusals = []
 
     def refuse_the_first_start(self, keyframes, camera):
@@ -154,7 +156,7 @@ def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answere
         return reason, {"epipolar_pairs": 3, "epipolar_disagreeing": 3 if reason else 0}
 
     monkeypatch.setattr(EpipolarCheck, "disagreement", refuse_the_first_start)
-    results = run_with_start(wrong=False, overrides=("mapping.threaded=true",
+    results = run_with_start(wrong=False, overrides=(f"mapping.threaded={str(threaded).lower()}",
                                                      "direct.start_check.epipolar.beside_mapping=true"))
     rejected = events_of(results, EventKind.INITIALIZATION_REJECTED)
     assert len(rejected) == 1 and "contradict" in rejected[0].details["reason"]

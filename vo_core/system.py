@@ -224,9 +224,10 @@ class Odometry:
         return result
 
     def _start_failed(self, frame: DirectFrame, result: FrameResult) -> bool:
-        """Live, with a mapping thread: whether a keyframe it mapped, or the start's witness beside mapping, failed
-        the start on probation (start_check.py); the start is then discarded here and the frame begins the next one."""
-        if self.mapper is None or self.direct.failed_start is None:
+        """Whether a keyframe mapped on a mapping thread, or the start's witness beside mapping, failed the start on
+        probation (start_check.py); the start is then discarded here and the frame begins the next one. (A keyframe
+        mapped here discards a start it fails at once.)"""
+        if self.direct.failed_start is None:
             return False
         self._own_the_maps()
         return self.direct.discard_failed_start(frame, result)
