@@ -371,11 +371,9 @@ class Odometry:
         if outcome.pose.found_fraction >= self.config.fdmo.overrule_share or not self._prior_reliable(tracking):
             return None
         off = self._off_prediction(frame, tracking, outcome.T_world_cam)
-        if off is None:
+        if off is None or not self._strays_from_prediction(off):
             return None
         expected_px, _, apart_px = off
-        if not apart_px > self.config.fdmo.gap_motion_share * expected_px:
-            return None
         return (f"the recovered pose ({outcome.pose.num_inliers} inliers, {outcome.pose.found_fraction:.1%} of the "
                 f"points in view) lies {apart_px:.0f} px from where the last motion puts the camera after "
                 f"{tracking.intervals_missed:.0f} frame intervals ({expected_px:.0f} px of motion predicted), and the "
@@ -411,6 +409,12 @@ class Odometry:
         return (image_motion_px(self.camera, points, T_world_last, predicted),
                 image_motion_px(self.camera, points, T_world_last, T_world_cam),
                 image_motion_px(self.camera, points, predicted, T_world_cam))
+
+    def _strays_from_prediction(self, off: tuple[float, float, float]) -> bool:
+        """The gap rule on ``_off_prediction``'s measures: the pose lies further from the predicted one than
+        ``gap_motion_share`` of the predicted image motion."""
+        expected_px, _, apart_px = off
+        return apart_px > self.config.fdmo.gap_motion_share * expected_px
 
     def _suspect_stands(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement, outcome,
                         result: FrameResult) -> bool:
@@ -490,7 +494,7 @@ class Odometry:
         expected_px, found_px, apart_px = off
         check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1),
                      from_prediction_px=round(apart_px, 1))
-        if not apart_px > self.config.fdmo.gap_motion_share * expected_px:
+        if not self._strays_from_prediction(off):
             return True
         judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
                              f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px ({apart_px:.0f} "

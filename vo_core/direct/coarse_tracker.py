@@ -21,6 +21,7 @@ from vo_core.direct.affine import exposure_ratio
 from vo_core.direct.config import PATTERN_8, TrackerConfig
 from vo_core.direct.photometric_kernels import align_level, level_residuals
 from vo_core.direct.pyramid import ImagePyramid, to_level
+from vo_core.geometry.multiview import median_shift_px
 
 PATTERN = np.array(PATTERN_8, dtype=float)  # (8, 2)
 WARP_BORDER = 2.0  # calcRes: Ku > 2 && Ku < w - 3
@@ -256,10 +257,7 @@ class CoarseTracker:
 
         uv_a, front_a = pixels(T_a_ref)
         uv_b, front_b = pixels(T_b_ref)
-        front = front_a & front_b
-        if not front.any():
-            return float("inf")
-        return float(np.median(np.linalg.norm(uv_a[front] - uv_b[front], axis=1)))
+        return median_shift_px(uv_a, uv_b, front_a & front_b)
 
     @staticmethod
     def _result(success, T, ab, rmse_levels, rmse_before, flow, num_terms) -> TrackingResult:

@@ -55,7 +55,12 @@ def image_motion_px(
     of both): how far apart two poses are, in what the images can tell apart; inf with no point in front of both."""
     uv_a, depth_a = project_world(camera, T_world_a, points_world)
     uv_b, depth_b = project_world(camera, T_world_b, points_world)
-    front = (depth_a > 0) & (depth_b > 0)
+    return median_shift_px(uv_a, uv_b, (depth_a > 0) & (depth_b > 0))
+
+
+def median_shift_px(uv_a: np.ndarray, uv_b: np.ndarray, front: np.ndarray) -> float:
+    """Median distance in pixels between the same points seen at ``uv_a`` and ``uv_b``, over those ``front`` (in
+    front of both cameras); inf with none."""
     if not front.any():
         return float("inf")
     return float(np.median(np.linalg.norm(uv_a[front] - uv_b[front], axis=1)))
