@@ -3,6 +3,7 @@ by P3P or EPnP inside RANSAC."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -49,6 +50,23 @@ def test_triangulation_recovers_points_and_rejects_what_fails_the_checks():
     # rotation's share.
     angles = np.degrees(bearing_angles(CAMERA, T_a, uv_a[10:], T_b, uv_b[10:]))
     assert np.all((angles > 2.0) & (angles < 20.0))
+
+
+def test_triangulation_agrees_with_opencv_and_refuses_pixels_that_are_not_numbers():
+    """The batched DLT is cv2.triangulatePoints' algorithm: the same points on noisy matches. A NaN pixel (a lost
+    track) makes its own point invalid, not the others'."""
+    rng = np.random.default_rng(2)
+    T_a, T_b = np.eye(4), se3(so3_exp(np.array([0.02, 0.04, 0.0])), np.array([0.3, 0.05, 0.0]))
+    points = points_in_view(rng, 200, T_a)
+    uv_a = project(T_a, points) + rng.normal(0.0, 0.5, (200, 2))
+    uv_b = project(T_b, points) + rng.normal(0.0, 0.5, (200, 2))
+    uv_b[7] = np.nan
+    triangulated, valid = triangulate(CAMERA, T_a, uv_a, T_b, uv_b, max_reprojection_px=2.0, min_depth=1e-3)
+    P_a, P_b = (CAMERA.K @ se3_inverse(T)[:3] for T in (T_a, T_b))
+    homogeneous = cv2.triangulatePoints(P_a, P_b, uv_a.T, uv_b.T)
+    opencv = (homogeneous[:3] / homogeneous[3]).T
+    assert not valid[7] and np.count_nonzero(valid) > 190
+    np.testing.assert_allclose(triangulated[valid], opencv[valid], rtol=1e-9, atol=1e-9)
 
 
 def test_triangulation_of_nothing():

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.cli import _live_overrides
-from test_fdmo_system import SMOOTH, run
+from test_fdmo_system import FAULT_START, SMOOTH, run
 from vo_core.events import EventKind, FrameResult
 from vo_core.mapping_thread import MappingThread
 
@@ -106,6 +106,40 @@ def test_stopping_mid_run_maps_what_was_queued_and_joins_the_thread():
     asked = [r.frame_index for r in recorder.frames if r.is_keyframe]
     mapped = [e.frame_index for e in recorder.events if e.kind is EventKind.KEYFRAME_ADDED]
     assert asked and set(asked) <= set(mapped)
+
+
+def test_live_a_frame_after_missed_frames_is_checked_while_the_direct_mapper_works_on():
+    """Live, the feature map checks the suspect frame after missed frames without waiting for the direct mapper
+    (held back here at a keyframe): waiting made the next frame later still, and suspect in turn. The frame is then
+    accepted as any other."""
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    odometry = Odometry(load_config(overrides=["method=fdmo", *THREADED, *LIVE]), SMOOTH.camera)
+    frames = list(SMOOTH)
+    for frame in frames[:FAULT_START]:
+        odometry.track(frame)
+    odometry.flush()
+    held, release = threading.Event(), threading.Event()
+
+    def held_back(result: FrameResult):
+        held.set()
+        release.wait(10.0)
+
+    odometry.mapper.submit(FAULT_START - 1, frames[FAULT_START - 1].timestamp, held_back, keyframe=True)
+    assert held.wait(5.0)
+    after_gap = []
+    tracking = threading.Thread(target=lambda: after_gap.append(odometry.track(frames[FAULT_START + 3])))
+    tracking.start()
+    tracking.join(5.0)
+    checked_while_mapping = not tracking.is_alive()
+    release.set()
+    tracking.join()
+    odometry.close()
+    assert checked_while_mapping
+    checked = [e for e in after_gap[0].events if e.kind is EventKind.TRACKING_CHECKED]
+    assert checked and "frames were missed" in checked[0].details["reason"]
+    assert after_gap[0].T_world_cam is not None
 
 
 def test_an_error_in_the_mapper_is_raised_on_the_tracking_thread():

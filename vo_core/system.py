@@ -24,12 +24,14 @@ and a diverged one is reported and kept. The KLT baseline is a pipeline of its o
 
 With ``mapping.threaded`` (mapping_thread.py) a trusted frame of a proven map is only committed here; its tracing
 and, at a keyframe, the direct mapping run on the direct mapping thread, and the feature map grows on a thread of
-its own. Every other branch of the flowchart waits for both first and then runs here, as in synchronous mode.
+its own. Every other branch of the flowchart waits for both first and then runs here, as in synchronous mode; live
+(``mapping.wait_for_keyframes`` off), the feature map's check of a suspect frame waits only for the feature mapper.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -109,6 +111,9 @@ class Odometry:
         # its feature mapping in a thread of its own too).
         has_features = self.features is not None
         self.feature_mapper = MappingThread(None, "feature-mapping") if threaded and has_features else None
+        # Held by the feature mapper's jobs, and by the tracking thread where it checks a pose against the feature
+        # map while the mappers work on (_check_beside_mapping).
+        self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.feature_keyframes_pending: set[int] = set()  # direct keyframes handed to the feature map, not added yet
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
@@ -245,18 +250,45 @@ class Odometry:
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         tracking, judgement = self._track_and_judge(frame, result)
+        refuted = None
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
+            if self._checks_beside_mapping(judgement):
+                refuted = self._check_beside_mapping(frame, tracking, judgement, result)
+                if refuted is None:
+                    return
             # What follows may change the maps (a recovery, a restart): the mapper finishes first, and where it
             # published a newer reference meanwhile, the frame is tracked against that one.
             self._own_the_maps()
             if self.direct.reference is not tracking.reference:
                 tracking, judgement = self._track_and_judge(frame, result)
+                refuted = None
         if judgement.verdict is Verdict.TRUSTED:
             self._accept(frame, tracking, result)
         elif self.features is None:
             self._without_recovery(frame, tracking, judgement, result)
         else:
-            self._recover(frame, tracking, judgement, result)
+            self._recover(frame, tracking, judgement, result, refuted)
+
+    def _checks_beside_mapping(self, judgement: Judgement) -> bool:
+        """Live (mapping that does not hold tracking back), a suspect pose is checked against the feature map while
+        the mappers work on: only the feature map must hold still meanwhile. Waiting for all the mapping first made
+        the next frame later still after missed frames, and so suspect in turn (teddy at 30 Hz: four frames in a
+        row 9-10 frame intervals apart, each waiting ~300 ms for the mappers). Offline the mappers are waited for,
+        so that the run is the synchronous one."""
+        return (self.features is not None and judgement.verdict is Verdict.SUSPECT
+                and not self.config.mapping.wait_for_keyframes)
+
+    def _check_beside_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                              result: FrameResult):
+        """The suspect check of ``_recover`` beside the mappers. Where the pose stands the frame is accepted and
+        None is returned; otherwise the feature map's outcome that refuted it (the judgement has the reason)."""
+        with self.feature_map_lock:
+            outcome = self._feature_pose(frame, tracking, result)
+            stands = self._suspect_stands(frame, tracking, judgement, outcome, result)
+        if not stands:
+            return outcome
+        self._accept(frame, tracking, result)
+        return None
 
     def _track_and_judge(self, frame: DirectFrame, result: FrameResult) -> tuple[DirectTracking, Judgement]:
         tracking = self.direct.track(frame)
@@ -294,9 +326,10 @@ class Odometry:
     def _grow_features_beside(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
                               result: FrameResult) -> MapSnapshot:
         """The feature mapping thread's job: the feature map grows at the keyframes the direct mapper handed it."""
-        self._add_feature_keyframes(new, window_poses, result)
-        return MapSnapshot(feature_points_world=self.features.points_world(),
-                           feature_keyframe_poses=self.features.keyframe_poses())
+        with self.feature_map_lock:
+            self._add_feature_keyframes(new, window_poses, result)
+            return MapSnapshot(feature_points_world=self.features.points_world(),
+                               feature_keyframe_poses=self.features.keyframe_poses())
 
     def _own_the_maps(self) -> None:
         """Before the tracking thread changes the maps (a recovery, a restart, an initialization): the mapping
@@ -341,13 +374,16 @@ class Odometry:
     # ------------------------------------------------------------------------------------ FDMO Fig. 3
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                 result: FrameResult) -> None:
-        estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
-        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
-        result.timings_ms["recovery"] = outcome.ms
-        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome, result):
-            self._accept(frame, tracking, result)
-            return
+                 result: FrameResult, refuted=None) -> None:
+        """FDMO Fig. 3: the feature map checks a suspect pose, and recovers where the direct pose is not kept.
+        ``refuted``: the feature map's outcome that already refused a suspect pose (``_check_beside_mapping``)."""
+        outcome = refuted
+        if outcome is None:
+            outcome = self._feature_pose(frame, tracking, result)
+            if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome,
+                                                                             result):
+                self._accept(frame, tracking, result)
+                return
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
@@ -360,6 +396,13 @@ class Odometry:
         _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
         self._set_matches(result, outcome, tracking.reference)
         self._continue_from(frame, outcome, tracking, result)
+
+    def _feature_pose(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult):
+        """The feature map's pose for the frame: blind, then around the direct pose (or the motion model's)."""
+        estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
+        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
+        result.timings_ms["recovery"] = outcome.ms
+        return outcome
 
     def _weak_recovery_off_prediction(self, frame: DirectFrame, tracking: DirectTracking, outcome) -> str | None:
         """After missed frames, why a recovery too weak to overrule a direct pose (under ``overrule_share``) is not

@@ -164,6 +164,9 @@ class WindowConfig:
     lambda_decrease: float = 0.25  # an accepted step: lambda *= 0.25
     lambda_increase: float = 100.0  # a rejected step: lambda *= 1e2
     min_step: float = 1e-4  # stop when no keyframe parameter moves more than this (ours, like setting_thOptIterations)
+    # Stop when an accepted step lowers the energy by less than this share of it (Ceres' function_tolerance).
+    # 0: never; DSO's window runs its iterations (teddy's windows still gain 0.1-0.2 % an iteration at the 6th).
+    min_relative_decrease: float = 0.0
     border: float = 2.0  # residuals whose pattern comes this close to the image edge are out
     min_inverse_depth: float = 1e-4  # inverse depths are kept positive (points at infinity are valid)
     idepth_regularization: float = 1e-6  # keeps a point without residuals solvable (its step is then zero)

@@ -119,10 +119,10 @@ class WindowOptimizer:
             trial_idepth = np.maximum(idepth + step_points, self.config.min_inverse_depth)
             trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first)
             if trial.energy < energy:
+                small_gain = energy - trial.energy < self.config.min_relative_decrease * energy
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
-                converged = np.abs(step_keyframes).max(initial=0.0) < self.config.min_step
-                if converged:
+                if small_gain or np.abs(step_keyframes).max(initial=0.0) < self.config.min_step:
                     break
             else:
                 lam *= self.config.lambda_increase

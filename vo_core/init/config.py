@@ -76,6 +76,10 @@ class PhotometricBAConfig:
 
     enabled: bool = True
     max_iterations: int = 20  # DSO FullSystem::optimize: 20 iterations while the window holds two keyframes
+    # ... but it stops once an accepted step gains less than this share of the energy (ours; WindowConfig's rule).
+    # Teddy's start: the first adjustment is within 0.4 % of its 20th iteration's energy after the 5th, the one
+    # after the filter within 0.03 % after the 3rd, and the 40 iterations were 165 ms of the frame that starts.
+    min_relative_decrease: float = 1e-3
 
 
 @dataclass

@@ -58,8 +58,9 @@ class AdjustedMap:
 
 def make_photometric_ba(direct: DirectConfig, config: PhotometricBAConfig) -> WindowOptimizer:
     """The window optimizer as DirectOdometry builds it (its robust costs and LM settings), with the
-    initializer's iteration count."""
-    window = dataclasses.replace(direct.window, max_iterations=config.max_iterations)
+    initializer's iteration count and stopping rule."""
+    window = dataclasses.replace(direct.window, max_iterations=config.max_iterations,
+                                 min_relative_decrease=config.min_relative_decrease)
     return WindowOptimizer(
         window, direct.tracker.huber_threshold, direct.immature.outlier_threshold,
         direct.immature.outlier_sum_component,
