@@ -112,7 +112,7 @@ class Odometry:
         has_features = self.features is not None
         self.feature_mapper = MappingThread(None, "feature-mapping") if threaded and has_features else None
         # Held by the feature mapper's jobs, and by the tracking thread where it checks a pose against the feature
-        # map while the mappers work on (_check_beside_mapping).
+        # map while the mappers work on (_stands_beside_mapping).
         self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.feature_keyframes_pending: set[int] = set()  # direct keyframes handed to the feature map, not added yet
@@ -250,24 +250,21 @@ class Odometry:
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         tracking, judgement = self._track_and_judge(frame, result)
-        refuted = None
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
-            if self._checks_beside_mapping(judgement):
-                refuted = self._check_beside_mapping(frame, tracking, judgement, result)
-                if refuted is None:
-                    return
+            if self._checks_beside_mapping(judgement) and self._stands_beside_mapping(frame, tracking, judgement,
+                                                                                      result):
+                return
             # What follows may change the maps (a recovery, a restart): the mapper finishes first, and where it
             # published a newer reference meanwhile, the frame is tracked against that one.
             self._own_the_maps()
             if self.direct.reference is not tracking.reference:
                 tracking, judgement = self._track_and_judge(frame, result)
-                refuted = None
         if judgement.verdict is Verdict.TRUSTED:
             self._accept(frame, tracking, result)
         elif self.features is None:
             self._without_recovery(frame, tracking, judgement, result)
         else:
-            self._recover(frame, tracking, judgement, result, refuted)
+            self._recover(frame, tracking, judgement, result)
 
     def _checks_beside_mapping(self, judgement: Judgement) -> bool:
         """Live (mapping that does not hold tracking back), a suspect pose is checked against the feature map while
@@ -278,17 +275,17 @@ class Odometry:
         return (self.features is not None and judgement.verdict is Verdict.SUSPECT
                 and not self.config.mapping.wait_for_keyframes)
 
-    def _check_beside_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                              result: FrameResult):
-        """The suspect check of ``_recover`` beside the mappers. Where the pose stands the frame is accepted and
-        None is returned; otherwise the feature map's outcome that refuted it (the judgement has the reason)."""
+    def _stands_beside_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                               result: FrameResult) -> bool:
+        """The suspect check of ``_recover`` beside the mappers; where the pose stands, the frame is accepted. Where
+        it does not, ``_recover`` checks again once the mappers are done: the feature map may lack keyframes the
+        direct mapper has not handed it yet."""
         with self.feature_map_lock:
             outcome = self._feature_pose(frame, tracking, result)
-            stands = self._suspect_stands(frame, tracking, judgement, outcome, result)
-        if not stands:
-            return outcome
-        self._accept(frame, tracking, result)
-        return None
+            stands = self._suspect_stands(frame, tracking, dataclasses.replace(judgement), outcome, result)
+        if stands:
+            self._accept(frame, tracking, result)
+        return stands
 
     def _track_and_judge(self, frame: DirectFrame, result: FrameResult) -> tuple[DirectTracking, Judgement]:
         tracking = self.direct.track(frame)
@@ -374,16 +371,12 @@ class Odometry:
     # ------------------------------------------------------------------------------------ FDMO Fig. 3
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                 result: FrameResult, refuted=None) -> None:
-        """FDMO Fig. 3: the feature map checks a suspect pose, and recovers where the direct pose is not kept.
-        ``refuted``: the feature map's outcome that already refused a suspect pose (``_check_beside_mapping``)."""
-        outcome = refuted
-        if outcome is None:
-            outcome = self._feature_pose(frame, tracking, result)
-            if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome,
-                                                                             result):
-                self._accept(frame, tracking, result)
-                return
+                 result: FrameResult) -> None:
+        """FDMO Fig. 3: the feature map checks a suspect pose, and recovers where the direct pose is not kept."""
+        outcome = self._feature_pose(frame, tracking, result)
+        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome, result):
+            self._accept(frame, tracking, result)
+            return
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
@@ -401,7 +394,7 @@ class Odometry:
         """The feature map's pose for the frame: blind, then around the direct pose (or the motion model's)."""
         estimate = tracking.T_world_cam if tracking.converged else self._predicted_pose(frame)
         outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, estimate)
-        result.timings_ms["recovery"] = outcome.ms
+        result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
         return outcome
 
     def _weak_recovery_off_prediction(self, frame: DirectFrame, tracking: DirectTracking, outcome) -> str | None:
