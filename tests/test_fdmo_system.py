@@ -106,6 +106,18 @@ def test_the_old_map_goes_on_when_frames_come_back_after_the_reinitialization_be
     assert ate < 3.0 * clean_ate
 
 
+def test_lost_frames_are_counted_in_camera_frames_not_in_frames_processed():
+    """Live, the frames that arrive while a lost frame is being processed are lost too: noise frames seen one in
+    three (30, 33, 36, 39) are 10 camera frames without a pose, and the new map is begun at the fourth of them."""
+    frames = [frame for frame in with_fault("noise")
+              if not FAULT_START <= frame.index < FAULT_START + FAULT_FRAMES or (frame.index - FAULT_START) % 3 == 0]
+    _, results, _ = run("fdmo", frames)
+    reinitializations = [(r.frame_index, e.details) for r in results for e in r.events
+                         if e.kind is EventKind.REINITIALIZATION]
+    assert [frame for frame, _ in reinitializations] == [FAULT_START + FAULT_FRAMES - 1]
+    assert reinitializations[0][1]["lost_frames"] == 10 and reinitializations[0][1]["lost_frames_processed"] == 4
+
+
 def test_direct_alone_reports_a_blackout_and_goes_on():
     """DSO's behaviour, reported: the first black frame loses tracking (a new map starts from it) or diverges (its
     pose is kept, as DSO keeps it; which of the two depends on whether an alignment on a black image stays within
