@@ -513,7 +513,11 @@ class Odometry:
 
         - after missed frames, the motion the time implies does: the pose must lie within ``gap_motion_share`` of the
           image motion (of the reference's points) that the last motion, kept up over the time that passed, predicts,
-          from the predicted pose (it stayed behind, or went far past it);
+          from the predicted pose (it stayed behind, or went far past it). A gap shorter than a jump (fewer than
+          ``divergence.sudden_motion_factor`` intervals: at the last speed the image moved less than a frame may move
+          without being one) is not judged so: the prediction's own error is as large there (a handheld camera's
+          over two intervals: a third of the motion), and live, where a frame or two is missed at every step, the
+          rule threw away right poses (13 px of motion where 34 px were predicted) and with them the run;
         - after a sudden motion the timestamps do not show, there is no such prediction: the pose must fit the images
           as well as the last frames did (DSO's retrack threshold; teddy with 30 frames dropped and retimed, the lock
           left an RMSE of 13.7 against 6.0).
@@ -531,6 +535,8 @@ class Odometry:
         expected_px, found_px, apart_px = off
         check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1),
                      from_prediction_px=round(apart_px, 1))
+        if tracking.intervals_missed < self.config.fdmo.divergence.sudden_motion_factor:
+            return True
         if not self._strays_from_prediction(off):
             return True
         judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
