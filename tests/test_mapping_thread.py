@@ -142,6 +142,26 @@ def test_live_a_frame_after_missed_frames_is_checked_while_the_direct_mapper_wor
     assert after_gap[0].T_world_cam is not None
 
 
+def test_live_the_start_grows_the_feature_map_on_its_thread():
+    """Live, the start's two feature keyframes, with the initializer's tracks as their first points, are made on the
+    feature mapping thread: the start frame does not wait for them, and they reach the sinks afterwards."""
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    recorder = Recorder()
+    odometry = Odometry(load_config(overrides=["method=fdmo", *THREADED, *LIVE]), SMOOTH.camera, [recorder])
+    for frame in SMOOTH:
+        start = odometry.track(frame)
+        if any(e.kind is EventKind.INITIALIZATION_SUCCEEDED for e in start.events):
+            break
+    assert not [e for e in start.events if e.kind is EventKind.FEATURE_KEYFRAME_ADDED]
+    odometry.flush()
+    odometry.close()
+    added = {e.details["keyframe"]: e.details for e in recorder.events if e.kind is EventKind.FEATURE_KEYFRAME_ADDED}
+    assert len(added) == 2 and min(added) < start.frame_index == max(added)
+    assert added[start.frame_index]["tracked_points"] > 50
+
+
 def test_an_error_in_the_mapper_is_raised_on_the_tracking_thread():
     mapper = MappingThread(max_queued_frames=3, name="test")
 

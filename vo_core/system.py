@@ -313,19 +313,23 @@ class Odometry:
             if not make_keyframe:
                 return None
             if self.feature_mapper is not None:
-                new, window_poses = self._new_feature_keyframes()
-                self.feature_mapper.submit(frame.index, frame.timestamp,
-                                           lambda grown: self._grow_features_beside(new, window_poses, grown))
+                self._submit_feature_keyframes(frame.index, frame.timestamp)
             return self.direct.map_snapshot()
 
         self.queued_frame = frame.index
         self.mapper.submit(frame.index, frame.timestamp, map_direct, keyframe=make_keyframe, may_skip=not make_keyframe)
 
+    def _submit_feature_keyframes(self, frame_index: int, timestamp: float, initialization=None) -> None:
+        """Hand the feature mapping thread the direct keyframes the feature map does not have yet."""
+        new, window_poses = self._new_feature_keyframes()
+        self.feature_mapper.submit(frame_index, timestamp,
+                                   lambda grown: self._grow_features_beside(new, window_poses, grown, initialization))
+
     def _grow_features_beside(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
-                              result: FrameResult) -> MapSnapshot:
+                              result: FrameResult, initialization=None) -> MapSnapshot:
         """The feature mapping thread's job: the feature map grows at the keyframes the direct mapper handed it."""
         with self.feature_map_lock:
-            self._add_feature_keyframes(new, window_poses, result)
+            self._add_feature_keyframes(new, window_poses, result, initialization)
             return MapSnapshot(feature_points_world=self.features.points_world(),
                                feature_keyframe_poses=self.features.keyframe_poses())
 
@@ -682,7 +686,11 @@ class Odometry:
     def _map_features(self, result: FrameResult, initialization=None) -> None:
         """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization
         both of the initializer's keyframes, and the initializer's feature tracks their first points), at its
-        direct pose."""
+        direct pose. Live, on the feature mapping thread: the start and a restart made them here, and the frames
+        that came meanwhile were missed (two feature keyframes at the start: 41-57 ms of teddy's)."""
+        if self.feature_mapper is not None and not self.config.mapping.wait_for_keyframes:
+            self._submit_feature_keyframes(result.frame_index, result.timestamp, initialization)
+            return
         self._add_feature_keyframes(*self._new_feature_keyframes(), result, initialization)
 
     def _new_feature_keyframes(self) -> tuple[list[_NewFeatureKeyframe], dict[int, np.ndarray]]:
@@ -702,7 +710,7 @@ class Odometry:
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
             self.feature_keyframes_pending.discard(keyframe.frame_index)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
-                report.tracked_points = self._add_initial_tracks(initialization)
+                report.tracked_points = self._add_initial_tracks(initialization, window_poses)
             result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
             _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, report.as_details())
             for culled in report.culled_keyframes:
@@ -711,15 +719,16 @@ class Odometry:
                 result.matches_2d = report.new_matches
                 result.matches_inlier = None
 
-    def _add_initial_tracks(self, initialization) -> int:
-        """The initializer's feature tracks (its first points) between its two keyframes join the feature map."""
+    def _add_initial_tracks(self, initialization, window_poses: dict[int, np.ndarray]) -> int:
+        """The initializer's feature tracks (its first points) between its two keyframes join the feature map, at
+        the first keyframe's pose in ``window_poses``."""
         if initialization.tracks_second is None:
             return 0
-        first = self.direct.keyframes[0]
+        first = initialization.first_frame_index
         count = len(initialization.tracks_second)
         uv, inverse_depths = initialization.points_uv[:count], initialization.inverse_depths[:count]
-        points_world = transform_points(first.T_world_cam, self.camera.unproject(uv) / inverse_depths[:, None])
-        return self.features.add_initial_tracks(first.frame_index, initialization.second_frame_index, uv,
+        points_world = transform_points(window_poses[first], self.camera.unproject(uv) / inverse_depths[:, None])
+        return self.features.add_initial_tracks(first, initialization.second_frame_index, uv,
                                                 initialization.tracks_second, points_world)
 
     def _set_matches(self, result: FrameResult, outcome, reference: Keyframe) -> None:
