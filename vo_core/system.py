@@ -273,8 +273,12 @@ class Odometry:
         the next frame later still after missed frames, and so suspect in turn (teddy at 30 Hz: four frames in a
         row 9-10 frame intervals apart, each waiting ~300 ms for the mappers). Offline the mappers are waited for,
         so that the run is the synchronous one."""
-        return (self.features is not None and judgement.verdict is Verdict.SUSPECT
-                and not self.config.mapping.wait_for_keyframes)
+        return self.features is not None and judgement.verdict is Verdict.SUSPECT and self._live_mapping
+
+    @property
+    def _live_mapping(self) -> bool:
+        """Mapping threads that do not hold tracking back (live input); offline they are waited for."""
+        return self.mapper is not None and not self.config.mapping.wait_for_keyframes
 
     def _stands_beside_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                                result: FrameResult) -> bool:
@@ -688,7 +692,7 @@ class Odometry:
         both of the initializer's keyframes, and the initializer's feature tracks their first points), at its
         direct pose. Live, on the feature mapping thread: the start and a restart made them here, and the frames
         that came meanwhile were missed (two feature keyframes at the start: 41-57 ms of teddy's)."""
-        if self.feature_mapper is not None and not self.config.mapping.wait_for_keyframes:
+        if self.feature_mapper is not None and self._live_mapping:
             self._submit_feature_keyframes(result.frame_index, result.timestamp, initialization)
             return
         self._add_feature_keyframes(*self._new_feature_keyframes(), result, initialization)
