@@ -252,8 +252,7 @@ class Odometry:
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
-            if self._checks_beside_mapping(judgement) and self._stands_beside_mapping(frame, tracking, judgement,
-                                                                                      result):
+            if self._stands_beside_mapping(frame, tracking, judgement, result):
                 return
             # What follows may change the maps (a recovery, a restart): the mapper finishes first, and where it
             # published a newer reference meanwhile, the frame is tracked against that one.
@@ -267,14 +266,6 @@ class Odometry:
         else:
             self._recover(frame, tracking, judgement, result)
 
-    def _checks_beside_mapping(self, judgement: Judgement) -> bool:
-        """Live (mapping that does not hold tracking back), a suspect pose is checked against the feature map while
-        the mappers work on: only the feature map must hold still meanwhile. Waiting for all the mapping first made
-        the next frame later still after missed frames, and so suspect in turn (teddy at 30 Hz: four frames in a
-        row 9-10 frame intervals apart, each waiting ~300 ms for the mappers). Offline the mappers are waited for,
-        so that the run is the synchronous one."""
-        return self.features is not None and judgement.verdict is Verdict.SUSPECT and self._live_mapping
-
     @property
     def _live_mapping(self) -> bool:
         """Mapping threads that do not hold tracking back (live input); offline they are waited for."""
@@ -282,9 +273,15 @@ class Odometry:
 
     def _stands_beside_mapping(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                                result: FrameResult) -> bool:
-        """The suspect check of ``_recover`` beside the mappers; where the pose stands, the frame is accepted. Where
-        it does not, ``_recover`` checks again once the mappers are done: the feature map may lack keyframes the
-        direct mapper has not handed it yet."""
+        """Live (mapping that does not hold tracking back), ``_recover``'s check of a suspect pose against the feature
+        map runs while the mappers work on: only the feature map must hold still meanwhile. Waiting for all the
+        mapping first made the next frame later still after missed frames, and so suspect in turn (teddy at 30 Hz:
+        four frames in a row 9-10 frame intervals apart, each waiting ~300 ms for the mappers). Where the pose stands,
+        the frame is accepted. Where it does not, ``_recover`` checks again once the mappers are done (the feature map
+        may lack keyframes the direct mapper has not handed it yet); offline it is only checked there, after the
+        mappers, so that the run is the synchronous one."""
+        if self.features is None or judgement.verdict is not Verdict.SUSPECT or not self._live_mapping:
+            return False
         with self.feature_map_lock:
             outcome = self._feature_pose(frame, tracking, result)
             stands = self._suspect_stands(frame, tracking, dataclasses.replace(judgement), outcome, result)
@@ -543,9 +540,8 @@ class Odometry:
         expected_px, found_px, apart_px = off
         check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1),
                      from_prediction_px=round(apart_px, 1))
-        if tracking.intervals_missed < self.config.fdmo.divergence.sudden_motion_factor:
-            return True
-        if not self._strays_from_prediction(off):
+        shorter_than_a_jump = tracking.intervals_missed < self.config.fdmo.divergence.sudden_motion_factor
+        if shorter_than_a_jump or not self._strays_from_prediction(off):
             return True
         judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
                              f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px ({apart_px:.0f} "
