@@ -3,6 +3,7 @@ truth than the perturbed start, and a run with it tracks a synthetic sequence be
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
@@ -10,6 +11,7 @@ from vo_core.config import load_config
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.odometry import Keyframe
+from vo_core.direct.photometric_kernels import POINTS_PER_BLOCK
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowOptimizer
@@ -98,6 +100,27 @@ def test_window_optimization_lowers_the_energy_and_moves_toward_the_truth():
     assert after[1] < 0.3 * before[1]  # rotation: measured 0.67 -> 0.014 deg
     assert after[2] < 0.5 * before[2]  # inverse depths: measured 5% -> 0.7%
     np.testing.assert_allclose(keyframes[0].T_world_cam, truth_poses[0])
+
+
+def test_the_optimization_does_not_depend_on_the_number_of_threads():
+    """The linearization runs blocks of points on numba's threads and sums them in a fixed order: one thread and
+    two give the same window to the bit (the same input, the same trajectory, on any machine)."""
+    sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
+    results = []
+    for threads in (1, 2):
+        keyframes = true_window(sequence)
+        rng = np.random.default_rng(3)
+        for keyframe in keyframes[1:]:
+            keyframe.T_world_cam = se3_exp(rng.normal(0, 0.004, 6)) @ keyframe.T_world_cam
+        default_threads = numba.get_num_threads()
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            optimizer().optimize(keyframes, MarginalizationPrior())
+        finally:
+            numba.set_num_threads(default_threads)
+        results.append(np.concatenate([np.concatenate([k.T_world_cam.ravel(), k.active_idepth]) for k in keyframes]))
+    assert sum(len(k.active_idepth) for k in keyframes) > 2 * POINTS_PER_BLOCK  # several blocks per thread
+    np.testing.assert_array_equal(results[0], results[1])
 
 
 def test_steps_with_a_fixed_scale_keep_the_window_scale():

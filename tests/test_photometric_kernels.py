@@ -3,7 +3,12 @@
 import cv2
 import numpy as np
 
-from vo_core.direct.photometric_kernels import TERM_COLUMNS, epipolar_search, normal_equations, warp_residuals
+from vo_core.direct.photometric_kernels import (
+    TERM_COLUMNS, bilinear3, bilinear_gradient, epipolar_search, normal_equations, warp_residuals,
+)
+from vo_core.direct.config import PyramidConfig
+from vo_core.direct.pyramid import ImagePyramid
+from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_exp
 
 WIDTH, HEIGHT = 96, 72
@@ -89,3 +94,16 @@ def test_epipolar_search_finds_the_matching_step_and_rates_it():
     np.testing.assert_allclose(best_u, true_u, atol=1e-6)
     np.testing.assert_allclose(best_v, true_v, atol=1e-6)
     assert np.all(quality > 10.0)  # the match is unambiguous on this texture
+
+
+def test_gradients_from_the_intensity_are_the_packed_images_to_the_bit():
+    """The window's linearization reads only the intensity; what it interpolates must be exactly what the tracker
+    reads from the packed image, or the same window would optimize differently. Checked on an 8-bit image (level 0)
+    and on a level of averaged, fractional intensities."""
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur(rng.uniform(0, 255, (4 * HEIGHT, 4 * WIDTH)), (0, 0), 3.0).round()
+    camera = PinholeCamera(4 * WIDTH, 4 * HEIGHT, *(4 * INTRINSICS))
+    for level in ImagePyramid(image, camera, PyramidConfig()).levels[:3]:
+        height, width = level.intensity.shape
+        for u, v in rng.uniform([1.0, 1.0], [width - 2.0, height - 2.0], (500, 2)):
+            assert bilinear_gradient(level.intensity, u, v) == bilinear3(level.packed, u, v)

@@ -30,7 +30,7 @@ from vo_core.features.orb import Features, OrbExtractor
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import motion_angles_deg, se3_inverse
 from vo_core.geometry.multiview import bearing_angles
-from vo_core.geometry.two_view import TwoViewConfig, estimate_models
+from vo_core.geometry.two_view import TwoViewConfig, estimate_models, motion_from_essential
 
 
 @dataclass
@@ -94,19 +94,16 @@ class EpipolarCheck:
                                           config.ransac_threshold_px)
         if E is None or E.shape != (3, 3):
             return None
-        points, R_other_anchor, t_other_anchor, in_front = cv2.recoverPose(E, uv_anchor, uv_other, camera.K,
-                                                                           mask=inliers.copy())
-        in_front = in_front.ravel() > 0
+        motion = motion_from_essential(camera, E, uv_anchor, uv_other, inliers.ravel() > 0, TwoViewConfig())
+        in_front = motion.good
         if in_front.sum() < config.min_points:
             return None
-        T_anchor_other = np.eye(4)
-        T_anchor_other[:3, :3] = R_other_anchor.T
-        T_anchor_other[:3, 3] = -R_other_anchor.T @ t_other_anchor.ravel()
+        T_anchor_other = motion.T_first_second
         rays = bearing_angles(camera, np.eye(4), uv_anchor[in_front], T_anchor_other, uv_other[in_front])
-        parallax = float(np.degrees(np.median(rays))) if len(rays) else 0.0
+        parallax = float(np.degrees(np.median(rays)))
         T_direct = se3_inverse(anchor.T_world_cam) @ other.T_world_cam
         return PairGeometry(
-            (anchor.frame_index, other.frame_index), int(points), parallax,
+            (anchor.frame_index, other.frame_index), int(in_front.sum()), parallax,
             *motion_angles_deg(T_anchor_other, T_direct),
             estimate_models(uv_anchor[in_front], uv_other[in_front], TwoViewConfig(),
                             np.random.default_rng(config.seed)).ratio,

@@ -63,7 +63,7 @@ class _WindowPoints:
     color: np.ndarray  # (P, 8) host intensities
     weight: np.ndarray  # (P, 8) host gradient weights sqrt(c / (c + |grad|^2))
     host_start: np.ndarray  # (K + 1,) the points of keyframe h are host_start[h]:host_start[h + 1]
-    images: numba.typed.List  # each keyframe's packed level-0 image (intensity, d/du, d/dv)
+    images: numba.typed.List  # each keyframe's level-0 intensity (the kernel takes the gradients from it)
 
 
 @dataclass
@@ -166,7 +166,7 @@ class WindowOptimizer:
             camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3), camera.unproject(uv),
             np.nan_to_num(sampled[..., 0]), np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-            numba.typed.List([k.pyramid[0].packed for k in keyframes]),
+            numba.typed.List([k.pyramid[0].intensity for k in keyframes]),
         )
 
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,

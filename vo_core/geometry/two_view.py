@@ -130,10 +130,12 @@ def _homography_errors(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[n
     """Squared transfer errors d_cr^2 and d_rc^2 (004 eqs. 4, 5) of every model (S, 3, 3) and point: (S, N)."""
 
     def transfer(M, source, target):
-        mapped = np.einsum("sij,nj->sni", M, source)
+        # (3, S, N) through one batched matmul: np.einsum took 10x longer, and component planes avoid strided slices
+        x, y, z = np.moveaxis(source @ M.transpose(0, 2, 1), -1, 0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            projected = mapped[..., :2] / mapped[..., 2:]
-        error = np.sum((projected - target[None, :, :2]) ** 2, axis=-1)
+            dx = x / z - target[:, 0]
+            dy = y / z - target[:, 1]
+        error = dx * dx + dy * dy
         return np.where(np.isfinite(error), error, np.inf)
 
     return transfer(H, p1, p2), transfer(np.linalg.inv(H), p2, p1)
@@ -141,12 +143,12 @@ def _homography_errors(H: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[n
 
 def _epipolar_errors(F: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Squared distances of each point to its epipolar line in the other image (004 eqs. 4, 5): (S, N) each."""
-    lines_2 = np.einsum("sij,nj->sni", F, p1)  # lines in the second image
-    lines_1 = np.einsum("sji,nj->sni", F, p2)  # F^T x2: lines in the first image
-    algebraic = np.einsum("sni,ni->sn", lines_2, p2)  # x2^T F x1 (the same number for both lines)
+    lines_2 = np.moveaxis(p1 @ F.transpose(0, 2, 1), -1, 0)  # F x1: lines in the second image, (3, S, N)
+    lines_1 = np.moveaxis(p2 @ F, -1, 0)  # F^T x2: lines in the first image
+    algebraic = lines_2[0] * p2[:, 0] + lines_2[1] * p2[:, 1] + lines_2[2] * p2[:, 2]  # x2^T F x1, for both lines
     with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = algebraic**2 / np.sum(lines_2[..., :2] ** 2, axis=-1)
-        d1 = algebraic**2 / np.sum(lines_1[..., :2] ** 2, axis=-1)
+        d2 = algebraic**2 / (lines_2[0] ** 2 + lines_2[1] ** 2)
+        d1 = algebraic**2 / (lines_1[0] ** 2 + lines_1[1] ** 2)
     return np.nan_to_num(d2, nan=np.inf), np.nan_to_num(d1, nan=np.inf)
 
 
@@ -193,7 +195,7 @@ def estimate_models(
 
 
 @dataclass
-class _Hypothesis:
+class MotionHypothesis:
     T_first_second: np.ndarray
     points: np.ndarray
     good: np.ndarray
@@ -203,7 +205,7 @@ class _Hypothesis:
 def _check_motion(
     camera: PinholeCamera, R: np.ndarray, t: np.ndarray, uv_first: np.ndarray, uv_second: np.ndarray,
     inliers: np.ndarray, config: TwoViewConfig,
-) -> _Hypothesis:
+) -> MotionHypothesis:
     """ORB-SLAM CheckRT: triangulate the inliers under x_second = R x_first + t; good points lie in front of
     both cameras and reproject within the threshold into both. The parallax is the 50th largest angle (ORB-SLAM):
     enough points must see it, so that a handful of near points does not pass a hypothesis."""
@@ -218,7 +220,7 @@ def _check_motion(
     if good.any():
         angles = np.degrees(bearing_angles(camera, np.eye(4), uv_first[good], T_first_second, uv_second[good]))
         parallax = float(np.sort(angles)[::-1][min(config.parallax_rank, len(angles) - 1)])
-    return _Hypothesis(T_first_second, points, good, parallax)
+    return MotionHypothesis(T_first_second, points, good, parallax)
 
 
 def _motion_hypotheses(model: str, scores: ModelScores, K: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -226,9 +228,23 @@ def _motion_hypotheses(model: str, scores: ModelScores, K: np.ndarray) -> list[t
     if model == "H":
         _, rotations, translations, _ = cv2.decomposeHomographyMat(scores.H, K)
         return list(zip(rotations, translations))
-    E = K.T @ scores.F @ K
+    return _essential_motions(K.T @ scores.F @ K)
+
+
+def _essential_motions(E: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     R1, R2, t = cv2.decomposeEssentialMat(E)
     return [(R1, t), (R1, -t), (R2, t), (R2, -t)]
+
+
+def motion_from_essential(
+    camera: PinholeCamera, E: np.ndarray, uv_first: np.ndarray, uv_second: np.ndarray, inliers: np.ndarray,
+    config: TwoViewConfig,
+) -> MotionHypothesis:
+    """The solution of an essential matrix that triangulates the most ``inliers`` in front of both views within the
+    reprojection threshold (ORB-SLAM CheckRT on each). cv2.recoverPose chooses the same way, with a distance limit
+    in place of the reprojection test, but triangulates point by point: 90 ms for a pair of 3000-feature images."""
+    hypotheses = [_check_motion(camera, R, t, uv_first, uv_second, inliers, config) for R, t in _essential_motions(E)]
+    return max(hypotheses, key=lambda hypothesis: int(hypothesis.good.sum()))
 
 
 def _pnp_error(camera: PinholeCamera, points: np.ndarray, uv: np.ndarray) -> float:
@@ -244,8 +260,8 @@ def _pnp_error(camera: PinholeCamera, points: np.ndarray, uv: np.ndarray) -> flo
 
 
 def _resolve_with_other_views(
-    camera: PinholeCamera, rivals: list[_Hypothesis], uv_others: list[np.ndarray], config: TwoViewConfig
-) -> _Hypothesis | None:
+    camera: PinholeCamera, rivals: list[MotionHypothesis], uv_others: list[np.ndarray], config: TwoViewConfig
+) -> MotionHypothesis | None:
     """A plane seen in two views leaves two valid motions (Faugeras' two-fold ambiguity); a third view of the
     same tracks tells them apart, since only the true structure projects into it consistently. Returns the
     rival whose structure explains the other views clearly best, or None."""
