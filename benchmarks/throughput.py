@@ -1,12 +1,13 @@
 """Whole-process throughput: fdmo runs and a peer system's, timed in turn on the same machine (issue 18).
 
     python3 benchmarks/throughput.py ../shared/data/tum_fr3_teddy_first200 --runs 3 \
-        --contender fdmo="--method fdmo" --contender direct="--method direct --mapping threaded" \
+        --contender fdmo="--no-rrd" --contender recorded="" --contender direct="--method direct --no-rrd" \
         --peer dso="/tmp/peers/dso/run_dso.sh {folder} {trajectory}"
 
-Each contender is one whole process as a user starts it: ``fdmo run FOLDER --no-rrd --quiet --out DIR`` with the
-contender's arguments, or a peer's command line with ``{folder}`` and ``{trajectory}`` (the TUM file it must write)
-filled in (build the peers as ../shared/peers/README.md says). Round after round every contender runs once, in the
+Each contender is one whole process as a user starts it: ``fdmo run FOLDER --quiet --out DIR`` with the
+contender's arguments (the Rerun recording is on unless they say ``--no-rrd``), or a peer's command line with
+``{folder}`` and ``{trajectory}`` (the TUM file it must write) filled in (build the peers as ../shared/peers/README.md
+says). Round after round every contender runs once, in the
 same order, so a slow spell of the machine touches them all. Per contender: median wall time, CPU time (user + sys)
 and peak RSS of the process and its children (os.wait4), keyframes (fdmo) and ATE (the Sim(3)-aligned RMSE of the
 posed frames against the folder's ground truth, vo_core.eval, for peers too). Run it on an idle machine.
@@ -49,11 +50,11 @@ def main() -> int:
     parser.add_argument("folder", type=Path)
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--contender", action="append", default=[], metavar="NAME=ARGS",
-                        help="an fdmo run with these arguments (default: fdmo=\"\")")
+                        help="an fdmo run with these arguments (default: fdmo=\"--no-rrd\")")
     parser.add_argument("--peer", action="append", default=[], metavar="NAME=COMMAND")
     parser.add_argument("--out", type=Path, help="default: results/benchmarks/throughput_<time>")
     args = parser.parse_args()
-    contenders = ([Contender(*_named(text), peer=False) for text in args.contender or ["fdmo="]]
+    contenders = ([Contender(*_named(text), peer=False) for text in args.contender or ["fdmo=--no-rrd"]]
                   + [Contender(*_named(text), peer=True) for text in args.peer])
     out = args.out or Path("results/benchmarks") / f"throughput_{time.strftime('%Y%m%d-%H%M%S')}"
     ground_truth = open_dataset(args.folder, DatasetConfig()).ground_truth
@@ -80,7 +81,7 @@ def _run(contender: Contender, folder: Path, out: Path, ground_truth) -> dict:
     if contender.peer:
         command = shlex.split(contender.arguments.format(folder=folder, trajectory=trajectory))
     else:
-        command = [sys.executable, "-m", "app", "run", str(folder), "--no-rrd", "--quiet", "--out", str(out),
+        command = [sys.executable, "-m", "app", "run", str(folder), "--quiet", "--out", str(out),
                    *shlex.split(contender.arguments)]
     start = time.perf_counter()
     with open(out / "stdout.txt", "w") as stdout:
