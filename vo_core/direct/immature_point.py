@@ -18,7 +18,7 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
-from vo_core.direct.photometric_kernels import PARALLEL_KERNELS, bilinear3, epipolar_search
+from vo_core.direct.photometric_kernels import bilinear3, epipolar_search
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
@@ -219,12 +219,11 @@ class ImmaturePoints:
     def _discrete_search(self, frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config):
         """Pattern energy at 1-px steps along the segment: the best step and the quality of the match."""
         factor, offset = affine
-        with PARALLEL_KERNELS:
-            return epipolar_search(
-                frame.intensity, start_u, start_v, dx, dy, num_steps.astype(np.int64), rotated, self.color[index],
-                float(factor), float(offset), float(config.huber_threshold), MISSING_ENERGY,
-                config.min_trace_test_radius,
-            )
+        return epipolar_search(
+            frame.intensity, start_u, start_v, dx, dy, num_steps.astype(np.int64), rotated, self.color[index],
+            float(factor), float(offset), float(config.huber_threshold), MISSING_ENERGY,
+            config.min_trace_test_radius,
+        )
 
     def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
         """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""

@@ -19,7 +19,6 @@ faster window linearization, a different teddy trajectory depending on the cache
 from __future__ import annotations
 
 import os
-import threading
 
 import numba
 import numpy as np
@@ -31,18 +30,10 @@ from vo_core.geometry.lie import se3_exp_compiled
 # tracking thread when mapping runs on its own. Read when OpenMP starts, at the first parallel call; a user's own
 # setting stands.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# Where neither TBB nor OpenMP is found, numba's own threading layer aborts the process when two threads launch
-# parallel kernels at once (a mapping thread and an initializer's adjustment): their callers hold this lock.
-PARALLEL_KERNELS = threading.Lock()
 
 # Columns of the per-term buffer that ``warp_residuals`` fills for ``normal_equations``.
 TERM_U, TERM_V, TERM_IDEPTH, TERM_GX, TERM_GY, TERM_RESIDUAL, TERM_WEIGHT, TERM_COLOR = range(8)
 TERM_COLUMNS = 8
-
-# Points per block of the parallel kernels (window_linearization, epipolar_search). A window's hosts differ in size
-# (the newest keyframes host most points: 56 to 536 in one window), so a thread per host left one core with 3x the
-# other's work; equal blocks split evenly, and their fixed partition keeps the sums independent of the threads.
-POINTS_PER_BLOCK = 128
 
 
 @numba.njit(cache=True, nogil=True)
@@ -287,7 +278,7 @@ def bilinear1(image, u, v):
             + (1.0 - du) * dv * image[iv + 1, iu] + du * dv * image[iv + 1, iu + 1])
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
                     missing_energy, test_radius):
     """traceOn's discrete search: the pattern's Huber energy at 1-px steps along each point's epipolar segment.
@@ -296,24 +287,14 @@ def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, col
     pattern offsets ``rotated`` are compared with ``color[i]`` under the affine (factor, offset). A pattern
     pixel outside the image costs ``missing_energy``. Returns per point the best position and the quality:
     the lowest energy more than ``test_radius`` steps from the best over the best (1e10 when there is none).
-    Blocks of points run on numba's threads; each point's result is its own, whatever the threads.
     """
     n = len(start_u)
-    best_u, best_v, quality = np.empty(n), np.empty(n), np.empty(n)
-    for j in numba.prange((n + POINTS_PER_BLOCK - 1) // POINTS_PER_BLOCK):
-        _search_block(j * POINTS_PER_BLOCK, min(n, (j + 1) * POINTS_PER_BLOCK), intensity, start_u, start_v, dx, dy,
-                      num_steps, rotated, color, factor, offset, huber, missing_energy, test_radius, best_u, best_v,
-                      quality)
-    return best_u, best_v, quality
-
-
-@numba.njit(cache=True, nogil=True)
-def _search_block(first, end, intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
-                  missing_energy, test_radius, best_u, best_v, quality):
-    """epipolar_search for points first..end-1."""
+    best_u = np.empty(n)
+    best_v = np.empty(n)
+    quality = np.empty(n)
     height, width = intensity.shape
-    energies = np.empty(num_steps[first:end].max())
-    for i in range(first, end):
+    energies = np.empty(num_steps.max() if n else 0)
+    for i in range(n):
         best_step = 0
         for step in range(num_steps[i]):
             u = start_u[i] + step * dx[i]
@@ -339,6 +320,7 @@ def _search_block(first, end, intensity, start_u, start_v, dx, dy, num_steps, ro
         best_u[i] = start_u[i] + best_step * dx[i]
         best_v[i] = start_v[i] + best_step * dy[i]
         quality[i] = second / max(energies[best_step], 1e-12)
+    return best_u, best_v, quality
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
@@ -420,6 +402,12 @@ def _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
             if tg != h:
                 _add_pair_system(M_pairs[h, tg], m_pairs[h, tg], A, adjoint0[tg], h, tg, H_kk, b_k)
     return energy, H_kk, b_k
+
+
+# Points per block of window_linearization's parallel loop. Hosts differ in size (the newest keyframes host most
+# points: 56 to 536 in one window), so a thread per host left one core with 3x the other's work; equal blocks
+# split evenly, and their fixed partition keeps the sums independent of the number of threads.
+POINTS_PER_BLOCK = 128
 
 
 @numba.njit(cache=True, nogil=True)
