@@ -102,6 +102,7 @@ def test_window_optimization_lowers_the_energy_and_moves_toward_the_truth():
     np.testing.assert_allclose(keyframes[0].T_world_cam, truth_poses[0])
 
 
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two of numba's threads to compare with one")
 def test_the_optimization_does_not_depend_on_the_number_of_threads():
     """The linearization runs blocks of points on numba's threads and sums them in a fixed order: one thread and
     two give the same window to the bit (the same input, the same trajectory, on any machine)."""
@@ -113,7 +114,7 @@ def test_the_optimization_does_not_depend_on_the_number_of_threads():
         for keyframe in keyframes[1:]:
             keyframe.T_world_cam = se3_exp(rng.normal(0, 0.004, 6)) @ keyframe.T_world_cam
         default_threads = numba.get_num_threads()
-        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        numba.set_num_threads(threads)
         try:
             optimizer().optimize(keyframes, MarginalizationPrior())
         finally:

@@ -3,10 +3,10 @@
 import cv2
 import numpy as np
 
+from vo_core.direct.config import PyramidConfig
 from vo_core.direct.photometric_kernels import (
     TERM_COLUMNS, bilinear3, bilinear_gradient, epipolar_search, normal_equations, warp_residuals,
 )
-from vo_core.direct.config import PyramidConfig
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_exp

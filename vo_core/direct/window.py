@@ -48,9 +48,9 @@ PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
 # cores are shared (a viewer, the image reader, another job) its spinning threads made window optimizations 8x
 # slower (parking: 389 ms instead of 52 ms per optimization beside a running pytest, 2 cores).
 _BLAS = ThreadpoolController()
-# The linearization's kernel runs blocks of points on numba's threads. Where neither TBB nor OpenMP is found, numba's own
-# threading layer aborts the process when two threads launch parallel kernels at once (a mapping thread and an
-# initializer's adjustment): one window linearization at a time.
+# The linearization's kernel runs blocks of points on numba's threads. Where neither TBB nor OpenMP is found,
+# numba's own threading layer aborts the process when two threads launch parallel kernels at once (a mapping thread
+# and an initializer's adjustment): one window linearization at a time.
 _PARALLEL_KERNEL = threading.Lock()
 POINT_IN, POINT_OUT, POINT_OUTLIER = 0, 1, 2
 
