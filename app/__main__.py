@@ -2,6 +2,6 @@
 
 import sys
 
-from app.cli import main
+from app.cli import command_line
 
-sys.exit(main())
+sys.exit(command_line())

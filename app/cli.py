@@ -275,7 +275,7 @@ def _warm_up(config: Config, camera, quiet: bool) -> None:
 def _sinks(args: argparse.Namespace, sequence, player, out_dir: Path) -> list:
     sinks = []
     if not args.no_rrd:
-        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence))
+        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence, args.own_process))
     if args.viser:
         sinks.append(_viser_view(sequence, player, args.host, args.port))
     return sinks
@@ -343,9 +343,12 @@ def _link_latest(out_dir: Path) -> None:
         latest.symlink_to(out_dir.name, target_is_directory=True)
 
 
-def _rerun_sink(path: Path, sequence):
-    from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
+def _rerun_sink(path: Path, sequence, own_process: bool):
+    # imported here: a run without a recording never loads rerun
+    from app.sinks.rerun_sink import RerunSink, keep_pandas_unloaded
 
+    if own_process:
+        keep_pandas_unloaded()
     path.parent.mkdir(parents=True, exist_ok=True)
     return RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth, recording_name=sequence.name)
 
@@ -521,9 +524,17 @@ COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plo
             "vocabulary": command_vocabulary, "experiment": command_experiment, "bench": command_bench}
 
 
-def main(argv: SequenceOf[str] | None = None) -> int:
+def command_line() -> int:
+    """The ``fdmo`` command (and ``python -m app``): ``main`` in a process of its own."""
+    return main(own_process=True)
+
+
+def main(argv: SequenceOf[str] | None = None, *, own_process: bool = False) -> int:
+    """Runs a command line. ``own_process``: the process is fdmo's alone, so that its pyarrow serves the recording
+    alone (``keep_pandas_unloaded``); not so where fdmo is called from other code (tests, scripts)."""
     try:
         args = build_parser().parse_args(argv)
+        args.own_process = own_process
         return COMMANDS[args.command](args)
     except InputError as error:
         print(f"fdmo: error: {_one_line(str(error))}", file=sys.stderr)

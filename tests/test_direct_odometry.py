@@ -9,6 +9,7 @@ from test_direct_support import PlaneScene, aligned_ate, pose, render_frame, sma
 from vo_core.config import load_config
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.coarse_initializer import CoarseInitializer
+from vo_core.direct.immature_point import host_pattern
 from vo_core.direct.odometry import DirectOdometry
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.errors import InputError
@@ -74,6 +75,19 @@ def test_frame_results_carry_what_the_system_needs(smooth_run):
     snapshot = odometry.map_snapshot()
     assert len(snapshot.direct_points_world) == len(snapshot.direct_inverse_depths) > 500
     assert keyframe.frame_index in snapshot.keyframe_poses
+
+
+def test_only_the_newest_keyframe_keeps_its_gradient_images(smooth_run):
+    """Issue 17: the older keyframes keep their intensities; their points carry the host pattern the window reads."""
+    _, odometry, _ = smooth_run
+    *older, newest = odometry.keyframes
+    assert older and not any(level.holds_packed for keyframe in older for level in keyframe.pyramid.levels)
+    assert newest.pyramid[0].holds_packed
+    for keyframe in older:  # the newest hosts only immature points yet
+        color, grad_sq = host_pattern(keyframe.pyramid[0], keyframe.active_uv)  # makes the packed image again
+        assert len(keyframe.active_idepth) > 0
+        np.testing.assert_array_equal(keyframe.active_color, color)
+        np.testing.assert_array_equal(keyframe.active_grad_sq, grad_sq)
 
 
 def test_a_jump_is_reported_not_silently_tracked():

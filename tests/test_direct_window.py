@@ -9,6 +9,7 @@ import pytest
 
 from vo_core.config import load_config
 from vo_core.direct.config import DirectConfig
+from vo_core.direct.immature_point import host_pattern
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.odometry import Keyframe
 from vo_core.direct.photometric_kernels import POINTS_PER_BLOCK
@@ -44,7 +45,7 @@ def true_window(sequence) -> list[Keyframe]:
         keep = np.isfinite(depth)
         keyframe = Keyframe(frame.index, frame.timestamp, frame.image, pyramid, frame.T_world_cam.copy(),
                             np.zeros(2), None, keyframe_id=len(keyframes))
-        keyframe.add_active(uv[keep], 1.0 / depth[keep])
+        keyframe.add_active(uv[keep], 1.0 / depth[keep], *host_pattern(pyramid[0], uv[keep]))
         keyframes.append(keyframe)
     return keyframes
 

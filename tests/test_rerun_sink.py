@@ -3,6 +3,9 @@ rerun.chunk.RrdReader."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -363,3 +366,21 @@ def test_the_default_view_holds_the_whole_path_and_the_dense_map_not_the_far_poi
     assert view.size < 10.0  # the path is 6 long, the dense cloud 2 deep: not the 500 of the far points
     assert np.all(np.linalg.norm(path - view.centre, axis=1) <= view.size / 2)  # the whole path in view
     assert np.mean(np.linalg.norm(dense - view.centre, axis=1) <= view.size / 2) > 0.95
+
+
+def test_a_recording_leaves_pandas_unloaded(tmp_path):
+    """Issue 17: pyarrow imports pandas (45 MB resident) to look at what rerun hands it; fdmo run keeps it out and
+    records the same entities. A fresh interpreter: this one may have pandas loaded by other tests."""
+    pytest.importorskip("pandas")  # where it is not installed there is nothing to keep out
+    path = tmp_path / "run.rrd"
+    script = (
+        "import sys; sys.path.insert(0, 'tests'); import test_rerun_sink as t; t.sink_module.keep_pandas_unloaded(); "
+        f"t.run_synthetic(t.RerunSink({str(path)!r}, t.CAMERA, ground_truth=t.ground_truth())); "
+        "print('pandas' in sys.modules)"
+    )
+    result = subprocess.run([sys.executable, "-W", "error::UserWarning", "-c", script], capture_output=True,
+                            text=True, cwd=Path(__file__).resolve().parents[1])
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["False"]
+    entities = {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream().to_chunks()}
+    assert {"/" + entity for entity in (sink_module.IMAGE, sink_module.EVENT_LOG, sink_module.DIRECT_POINTS)} <= entities

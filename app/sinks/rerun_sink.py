@@ -38,12 +38,14 @@ keyframes.
 
 from __future__ import annotations
 
+import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -113,6 +115,24 @@ MARKER_RADIUS_UI = 6.0
 PATH_RADIUS_UI = 1.5
 MATCH_RADIUS_PX = 0.75
 PLOT_MARKER_SIZE = 6.0
+
+
+def keep_pandas_unloaded() -> None:
+    """Keep pyarrow from importing pandas (45 MB resident, issue 17) where it is installed but not imported.
+
+    The first time rerun hands pyarrow anything but a numpy array, pyarrow imports pandas only to ask whether the
+    object is a pandas one; logging never needs pandas. Here that first attempt fails: pyarrow remembers it and
+    does not try again. For a process whose pyarrow serves the recording alone (``fdmo run``): pyarrow's other
+    conversions then behave as without pandas (nanosecond timestamps no longer convert to Python objects)."""
+    if "pandas" in sys.modules:
+        return
+    sys.modules["pandas"] = None  # an import of pandas now fails
+    try:
+        pa.array([0])
+    except (AttributeError, ImportError):  # pyarrow 26 reads __version__ of what the failed import gave it
+        pass
+    finally:
+        del sys.modules["pandas"]
 
 
 class RerunSink:

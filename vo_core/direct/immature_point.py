@@ -18,7 +18,7 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
-from vo_core.direct.photometric_kernels import bilinear3, epipolar_search
+from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, epipolar_search
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
@@ -47,6 +47,7 @@ class ImmaturePoints:
     color: np.ndarray  # (N, 8) host intensities of the pattern
     weight: np.ndarray  # (N, 8) gradient-dependent pattern weights (GN energy)
     grad_h: np.ndarray  # (N, 2, 2) sum over the pattern of g g^T
+    host_grad_sq: np.ndarray  # (N, 8) float32 |grad I|^2 of the pattern, carried into the window on activation
     energy_threshold: np.ndarray  # (N,)
     idepth_min: np.ndarray
     idepth_max: np.ndarray  # NaN until the first successful trace
@@ -69,6 +70,7 @@ class ImmaturePoints:
             color=pattern.color,
             weight=pattern.weight,
             grad_h=pattern.grad_h,
+            host_grad_sq=pattern.host_grad_sq,
             energy_threshold=pattern.energy_threshold,
             idepth_min=np.zeros(n),
             idepth_max=np.full(n, np.nan),
@@ -306,13 +308,13 @@ class PatternPoints:
     weight: np.ndarray  # (N, 8) gradient-dependent weights (setting_outlierTHSumComponent)
     energy_threshold: np.ndarray  # (N,)
     grad_h: np.ndarray  # (N, 2, 2) sum over the pattern of g g^T (the epipolar search's error bound)
+    host_grad_sq: np.ndarray  # (N, 8) float32 |grad I|^2 of the pattern (host_pattern's, for the window)
 
     @classmethod
     def sample(cls, host: ImagePyramid, uv: np.ndarray, config: ImmatureConfig) -> tuple["PatternPoints", np.ndarray]:
         """The pattern of each pixel in the host; also the mask of pixels whose pattern lies inside."""
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-        pattern_uv = uv[:, None, :] + PATTERN[None]
-        sampled = host[0].sample(pattern_uv[..., 0], pattern_uv[..., 1])  # (N, 8, 3)
+        sampled = _sample_pattern(host[0], uv)
         inside = np.all(np.isfinite(sampled[..., 0]), axis=1)
         sampled = sampled[inside]
         gradient = sampled[..., 1:].astype(float)
@@ -323,8 +325,28 @@ class PatternPoints:
             weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
             energy_threshold=np.full(int(inside.sum()), len(PATTERN) * config.outlier_threshold),
             grad_h=np.einsum("npi,npj->nij", gradient, gradient),
+            host_grad_sq=_grad_sq(sampled),
         )
         return points, inside
+
+
+def host_pattern(level: PyramidLevel, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What an active point carries from its host into the window (DSO's PointHessian color and weights): the
+    pattern's intensities and squared gradient magnitudes around level-0 pixels ``uv``, (N, 8) float32 each, zero
+    where the pattern leaves the image. Taken while the host still has its gradients."""
+    sampled = _sample_pattern(level, np.asarray(uv, dtype=float).reshape(-1, 2))
+    return np.nan_to_num(sampled[..., 0]), np.nan_to_num(_grad_sq(sampled))
+
+
+def _sample_pattern(level: PyramidLevel, uv: np.ndarray) -> np.ndarray:
+    """(N, 8, 3) float32 intensity and gradients at the pattern around each pixel; NaN outside the image."""
+    pattern_uv = uv[:, None, :] + PATTERN[None]
+    return level.sample(pattern_uv[..., 0], pattern_uv[..., 1])
+
+
+def _grad_sq(sampled: np.ndarray) -> np.ndarray:
+    """|grad I|^2 of sampled patterns, in float32 as the window weighs its residuals."""
+    return sampled[..., 1] ** 2 + sampled[..., 2] ** 2
 
 
 def optimize_for_activation(
@@ -333,7 +355,7 @@ def optimize_for_activation(
     """optimizeImmaturePoint for the points ``index``, from the middle of their traced interval."""
     pattern = PatternPoints(
         points.uv[index], points.color[index], points.weight[index], points.energy_threshold[index],
-        points.grad_h[index],
+        points.grad_h[index], points.host_grad_sq[index],
     )
     return optimize_inverse_depths(pattern, points.idepth[index], targets, config, config.first_outlier_slack)
 
@@ -395,19 +417,21 @@ def _depth_system(points: PatternPoints, rays, targets, idepth, in_bounds, outli
         _add_depth_terms(
             rays, idepth, points.color, weight_sq, threshold, target.T_target_host[:3, :3],
             target.T_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
-            target.level.packed, float(factor), float(offset), config.huber_threshold, in_bounds[:, j],
+            target.level.intensity, float(factor), float(offset), config.huber_threshold, in_bounds[:, j],
             inlier[:, j], energy, H, b,
         )
     return energy, H, b, inlier
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_depth_terms(rays, idepth, color, weight_sq, threshold, R, t, intrinsics, packed, factor, offset, huber,
+def _add_depth_terms(rays, idepth, color, weight_sq, threshold, R, t, intrinsics, intensity, factor, offset, huber,
                      in_bounds, inlier, energy, H, b):
     """One target's part of ``_depth_system``, added into ``energy``, ``H``, ``b``; sets ``inlier`` and clears
-    ``in_bounds`` where the pattern leaves the image (1 px margin) or the point falls behind the camera."""
+    ``in_bounds`` where the pattern leaves the image (a 1 px margin, 2 px on the right and bottom, where the
+    gradients at the four corners need a pixel beyond them) or the point falls behind the camera. The targets are
+    older keyframes, which keep only their intensities (``PyramidLevel.release_packed``)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    height, width = packed.shape[0], packed.shape[1]
+    height, width = intensity.shape[0], intensity.shape[1]
     pattern = rays.shape[1]
     residuals = np.empty(pattern)
     d_idepth = np.empty(pattern)
@@ -421,11 +445,11 @@ def _add_depth_terms(rays, idepth, color, weight_sq, threshold, R, t, intrinsics
             inverse_z = 1.0 / z if z != 0.0 else -1.0
             u, v = x * inverse_z, y * inverse_z
             Ku, Kv = fx * u + cx, fy * v + cy
-            if not (inverse_z > 0.0 and Ku >= 1.0 and Kv >= 1.0 and Ku <= width - 2 and Kv <= height - 2):
+            if not (inverse_z > 0.0 and Ku >= 1.0 and Kv >= 1.0 and Ku < width - 2 and Kv < height - 2):
                 in_bounds[i] = False
                 break
-            intensity, gx, gy = bilinear3(packed, Ku, Kv)
-            residuals[k] = intensity - (factor * color[i, k] + offset)
+            value, gx, gy = bilinear_gradient(intensity, Ku, Kv)
+            residuals[k] = value - (factor * color[i, k] + offset)
             # d residual / d inverse depth through the projection (u, v) = (x, y) / z
             d_idepth[k] = gx * fx * (t[0] - t[2] * u) * inverse_z + gy * fy * (t[1] - t[2] * v) * inverse_z
         if not in_bounds[i]:

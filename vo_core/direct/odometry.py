@@ -36,9 +36,9 @@ import cv2
 import numpy as np
 
 from vo_core.direct.affine import relative_affine
-from vo_core.direct.coarse_tracker import CoarseTracker, TrackingResult
+from vo_core.direct.coarse_tracker import PATTERN, CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
+from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, host_pattern, optimize_for_activation
 from vo_core.direct.initialization import InitializationResult, InitializerFactory
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -76,6 +76,8 @@ class Keyframe:
     keyframe_id: int = 0  # keyframes since initialization (DSO's frameID; the first is 0)
     active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 host pixels
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))  # inverse depths in the host
+    active_color: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN)), np.float32))
+    active_grad_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN)), np.float32))
     immature: ImmaturePoints | None = None
     # The tracking reference made on this keyframe: every active point of the window projected into it
     # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.
@@ -99,9 +101,12 @@ class Keyframe:
         idepth = self.reference_idepth if len(self.reference_idepth) else self.active_idepth
         return float(1.0 / np.median(idepth)) if len(idepth) else float("nan")
 
-    def add_active(self, uv: np.ndarray, idepth: np.ndarray) -> None:
+    def add_active(self, uv: np.ndarray, idepth: np.ndarray, color: np.ndarray, grad_sq: np.ndarray) -> None:
+        """New active points with their host pattern (``host_pattern``: intensities, squared gradients)."""
         self.active_uv = np.concatenate([self.active_uv, uv])
         self.active_idepth = np.concatenate([self.active_idepth, idepth])
+        self.active_color = np.concatenate([self.active_color, color])
+        self.active_grad_sq = np.concatenate([self.active_grad_sq, grad_sq])
 
 
 @dataclass
@@ -465,7 +470,8 @@ class DirectOdometry:
             frame.index, frame.timestamp, frame.frame.image, frame.pyramid, np.array(T_world_cam, float),
             np.zeros(2), frame.exposure,
         )
-        keyframe.add_active(np.asarray(points_uv, float), np.asarray(inverse_depths, float))
+        keyframe.add_active(np.asarray(points_uv, float), np.asarray(inverse_depths, float),
+                            *host_pattern(keyframe.pyramid[0], points_uv))
         self.keyframes = [keyframe]
         self.prior = MarginalizationPrior()
         self.history = [_Tracked(keyframe.T_world_cam, keyframe.affine, keyframe.timestamp)]
@@ -499,7 +505,8 @@ class DirectOdometry:
             first_frame.index, first_frame.timestamp, first_frame.frame.image, first_frame.pyramid,
             self.T_world_origin.copy(), np.zeros(2), first_frame.exposure,
         )
-        first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float))
+        first.add_active(np.asarray(outcome.points_uv, float), np.asarray(outcome.inverse_depths, float),
+                         *host_pattern(first.pyramid[0], outcome.points_uv))
         self.keyframes = [first]  # a window kept by reinitialize(keep_window=True) ends here
         self.prior = MarginalizationPrior()
         self._reset_rmse()
@@ -609,6 +616,8 @@ class DirectOdometry:
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         self._set_tracking_reference(keyframe)
+        for older in self.keyframes[:-1]:
+            older.pyramid.release_packed()  # from here on read through their intensities
         result.is_keyframe = True
         result.events.append(
             _event(
@@ -773,7 +782,9 @@ class DirectOdometry:
             idepth, usable = optimize_for_activation(
                 immature, chosen, self._activation_targets(keyframe, new_keyframe), self.config.immature
             )
-            keyframe.add_active(immature.uv[chosen[usable]], idepth[usable])
+            activating = chosen[usable]
+            keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
+                                immature.host_grad_sq[activating])
             activated += int(usable.sum())
             # Activated points leave the immature set; so do those that failed and the hopeless ones.
             remove = immature.hopeless()

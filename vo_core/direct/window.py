@@ -91,7 +91,8 @@ class WindowReport:
 
 
 class WindowOptimizer:
-    """Optimizes a list of keyframes in place (their T_world_cam, affine and active_idepth)."""
+    """Optimizes a list of keyframes in place (their T_world_cam, affine and active_idepth). A keyframe's points
+    bring their host pattern (active_color, active_grad_sq): the window reads only the keyframes' intensities."""
 
     def __init__(self, config: WindowConfig, huber_threshold: float, outlier_threshold: float,
                  outlier_sum_component: float):
@@ -157,15 +158,12 @@ class WindowOptimizer:
         counts = [len(k.active_idepth) for k in keyframes]
         uv = np.concatenate([k.active_uv for k in keyframes])
         pattern_uv = uv[:, None, :] + PATTERN[None]  # (P, 8, 2)
-        sampled = np.concatenate([
-            keyframe.pyramid[0].sample(points[..., 0], points[..., 1]).reshape(-1, len(PATTERN), 3)
-            for keyframe, points in zip(keyframes, np.split(pattern_uv, np.cumsum(counts)[:-1]))
-        ])  # (P, 8, 3) intensity and gradients in the host
-        grad_sq = np.nan_to_num(sampled[..., 1] ** 2 + sampled[..., 2] ** 2)
+        grad_sq = np.concatenate([k.active_grad_sq for k in keyframes])
         camera = keyframes[0].camera
         return _WindowPoints(
             camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3), camera.unproject(uv),
-            np.nan_to_num(sampled[..., 0]), np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
+            np.concatenate([k.active_color for k in keyframes]),
+            np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             numba.typed.List([k.pyramid[0].intensity for k in keyframes]),
         )
@@ -244,6 +242,8 @@ class WindowOptimizer:
             keyframe.affine = ab
             keyframe.active_uv = keyframe.active_uv[kept]
             keyframe.active_idepth = idepth[offset:offset + count][kept]
+            keyframe.active_color = keyframe.active_color[kept]
+            keyframe.active_grad_sq = keyframe.active_grad_sq[kept]
             offset += count
         return keep
 

@@ -23,7 +23,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from vo_core.direct.config import DirectConfig
+from vo_core.direct.config import PATTERN_8, DirectConfig
+from vo_core.direct.immature_point import host_pattern
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowOptimizer, WindowReport
@@ -42,6 +43,8 @@ class WindowFrame:
     affine: np.ndarray = field(default_factory=lambda: np.zeros(2))  # DSO's (a, b); both frames start at zero
     active_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # level-0 pixels of hosted points
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    active_color: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
+    active_grad_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
 
     @property
     def camera(self) -> PinholeCamera:
@@ -80,6 +83,7 @@ def photometric_bundle_adjustment(
     reference = frames[0]
     reference.active_uv = np.array(uv, float)
     reference.active_idepth = np.array(inverse_depths, float)
+    reference.active_color, reference.active_grad_sq = host_pattern(reference.pyramid[0], reference.active_uv)
     report = optimizer.optimize(frames, MarginalizationPrior())
     return AdjustedMap(
         np.array([frame.T_world_cam for frame in frames]), report.kept, reference.active_idepth, report,
