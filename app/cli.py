@@ -49,6 +49,9 @@ DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
 MAPPING_MODES = ("sync", "threaded")
+# Read when rerun's library loads: its allocator (mimalloc) gives freed memory back at once rather than keeping it
+# for later, and commits its arenas as they fill (issue 17: 13-16 MB less on teddy).
+RECORDING_ALLOCATOR = {"MIMALLOC_PURGE_DELAY": "0", "MIMALLOC_ARENA_EAGER_COMMIT": "0"}
 
 
 class _OneLineParser(argparse.ArgumentParser):
@@ -345,10 +348,8 @@ def _link_latest(out_dir: Path) -> None:
 
 def _rerun_sink(path: Path, sequence, own_process: bool):
     if own_process:
-        # Read when rerun's library loads: its allocator (mimalloc) gives freed memory back at once rather than
-        # keeping it for later, and commits its arenas as they fill (issue 17: 13-16 MB less on teddy).
-        os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
-        os.environ.setdefault("MIMALLOC_ARENA_EAGER_COMMIT", "0")
+        for name, value in RECORDING_ALLOCATOR.items():
+            os.environ.setdefault(name, value)
     # imported here: a run without a recording never loads rerun
     from app.sinks.rerun_sink import RerunSink, keep_pandas_unloaded
 

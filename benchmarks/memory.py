@@ -6,7 +6,8 @@
 1. The floor: a fresh interpreter imports what ``fdmo run`` imports, stage by stage, and reports its resident set
    (RSS, split into anonymous memory and the pages of mapped files: the libraries' code and data) after each:
    numpy, OpenCV, the scipy modules the project uses, numba, the project, the first compiled kernel loaded from
-   numba's cache (numba then builds its runtime with LLVM), rerun and a first recorded entity.
+   numba's cache (numba then builds its runtime with LLVM), rerun (with the settings ``fdmo run`` gives it) and
+   a first recorded entity. Where pandas is installed, fdmo run keeps pyarrow from loading it (45 MB).
 2. The run: ``fdmo run FOLDER --quiet`` as a user starts it, its ``/proc/PID/smaps`` read every 0.2 s. At the
    sample with the largest RSS the memory is grouped by mapping: the heap, anonymous mappings (numpy's large
    arrays, the threads' arenas, the Rust allocator of rerun) and each library's pages. The peak RSS is the
@@ -44,7 +45,9 @@ FLOOR_STAGES = (
     ("the project (app.pipeline, app.cli)", "import app.pipeline, app.cli"),
     ("a first compiled kernel from numba's cache",
      "from vo_core.direct.pyramid import _half; _half(numpy.zeros((4, 4), numpy.float32))"),
-    ("rerun (and pyarrow)", "import rerun"),
+    ("rerun (and pyarrow), as fdmo run loads them",
+     "import os; os.environ.update(app.cli.RECORDING_ALLOCATOR); import rerun; "
+     "from app.sinks.rerun_sink import keep_pandas_unloaded; keep_pandas_unloaded()"),
     ("a recording: save + a first entity",
      "r = rerun.RecordingStream('memory'); r.save(TMP); r.log('p', rerun.Points3D(numpy.zeros((4, 3)))); r.flush()"),
 )
