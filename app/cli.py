@@ -346,15 +346,21 @@ def _link_latest(out_dir: Path) -> None:
         latest.symlink_to(out_dir.name, target_is_directory=True)
 
 
+def prepare_recording_process() -> None:
+    """What a process of fdmo's own does before it loads rerun to record (issue 17): the allocator's settings
+    (``RECORDING_ALLOCATOR``, which the user's environment overrides) and a pyarrow without pandas."""
+    for name, value in RECORDING_ALLOCATOR.items():
+        os.environ.setdefault(name, value)
+    from app.sinks.rerun_sink import keep_pandas_unloaded
+
+    keep_pandas_unloaded()
+
+
 def _rerun_sink(path: Path, sequence, own_process: bool):
     if own_process:
-        for name, value in RECORDING_ALLOCATOR.items():
-            os.environ.setdefault(name, value)
-    # imported here: a run without a recording never loads rerun
-    from app.sinks.rerun_sink import RerunSink, keep_pandas_unloaded
+        prepare_recording_process()
+    from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
 
-    if own_process:
-        keep_pandas_unloaded()
     path.parent.mkdir(parents=True, exist_ok=True)
     return RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth, recording_name=sequence.name)
 

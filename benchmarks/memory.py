@@ -46,8 +46,7 @@ FLOOR_STAGES = (
     ("a first compiled kernel from numba's cache",
      "from vo_core.direct.pyramid import _half; _half(numpy.zeros((4, 4), numpy.float32))"),
     ("rerun (and pyarrow), as fdmo run loads them",
-     "import os; os.environ.update(app.cli.RECORDING_ALLOCATOR); import rerun; "
-     "from app.sinks.rerun_sink import keep_pandas_unloaded; keep_pandas_unloaded()"),
+     "app.cli.prepare_recording_process(); import rerun"),
     ("a recording: save + a first entity",
      "r = rerun.RecordingStream('memory'); r.save(TMP); r.log('p', rerun.Points3D(numpy.zeros((4, 3)))); r.flush()"),
 )

@@ -20,6 +20,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.cli import prepare_recording_process  # noqa: E402
+
+if "--no-rrd" not in sys.argv:
+    prepare_recording_process()  # as fdmo run does, before rerun loads with app.soak
+
 from app.soak import LOOP_FRAMES, RSS_TOLERANCE, rss_samples_text, soak  # noqa: E402
 from vo_core.config import load_config  # noqa: E402
 
