@@ -33,6 +33,7 @@ from typing import Any, NoReturn
 
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
+from app.sinks.background import BackgroundSink
 from vo_core.config import METHODS, Config, load_config
 from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
 from vo_core.errors import InputError
@@ -362,7 +363,8 @@ def _rerun_sink(path: Path, sequence, own_process: bool):
     from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    return RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth, recording_name=sequence.name)
+    return BackgroundSink(RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth,
+                                    recording_name=sequence.name))
 
 
 def _viser_view(sequence, player, host: str, port: int):
