@@ -19,7 +19,7 @@ import numpy as np
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, epipolar_search
-from vo_core.direct.pyramid import ImagePyramid, PyramidLevel
+from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
 
@@ -325,7 +325,7 @@ class PatternPoints:
             weight=np.sqrt(config.outlier_sum_component / (config.outlier_sum_component + grad_sq)),
             energy_threshold=np.full(int(inside.sum()), len(PATTERN) * config.outlier_threshold),
             grad_h=np.einsum("npi,npj->nij", gradient, gradient),
-            host_grad_sq=_grad_sq(sampled),
+            host_grad_sq=squared_gradient(sampled),  # float32, as the window weighs its residuals
         )
         return points, inside
 
@@ -335,18 +335,13 @@ def host_pattern(level: PyramidLevel, uv: np.ndarray) -> tuple[np.ndarray, np.nd
     pattern's intensities and squared gradient magnitudes around level-0 pixels ``uv``, (N, 8) float32 each, zero
     where the pattern leaves the image. Taken while the host still has its gradients."""
     sampled = _sample_pattern(level, np.asarray(uv, dtype=float).reshape(-1, 2))
-    return np.nan_to_num(sampled[..., 0]), np.nan_to_num(_grad_sq(sampled))
+    return np.nan_to_num(sampled[..., 0]), np.nan_to_num(squared_gradient(sampled))
 
 
 def _sample_pattern(level: PyramidLevel, uv: np.ndarray) -> np.ndarray:
     """(N, 8, 3) float32 intensity and gradients at the pattern around each pixel; NaN outside the image."""
     pattern_uv = uv[:, None, :] + PATTERN[None]
     return level.sample(pattern_uv[..., 0], pattern_uv[..., 1])
-
-
-def _grad_sq(sampled: np.ndarray) -> np.ndarray:
-    """|grad I|^2 of sampled patterns, in float32 as the window weighs its residuals."""
-    return sampled[..., 1] ** 2 + sampled[..., 2] ** 2
 
 
 def optimize_for_activation(

@@ -47,7 +47,7 @@ class PyramidLevel:
     @property
     def grad_sq(self) -> np.ndarray:
         """|grad I|^2 per pixel (DSO's absSquaredGrad)."""
-        return self.packed[:, :, 1] ** 2 + self.packed[:, :, 2] ** 2
+        return squared_gradient(self.packed)
 
     def sample(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Bilinear (intensity, du, dv) at float pixels (any shape); NaN outside the image."""
@@ -55,6 +55,11 @@ class PyramidLevel:
 
     def sample_intensity(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         return remap_points(self.intensity, u, v).reshape(np.shape(u))
+
+
+def squared_gradient(samples: np.ndarray) -> np.ndarray:
+    """|grad I|^2 of packed (..., 3) samples (intensity, d/du, d/dv), in their float32."""
+    return samples[..., 1] ** 2 + samples[..., 2] ** 2
 
 
 _REMAP_COLUMNS = 4096  # cv2.remap needs maps narrower than SHRT_MAX: points are laid out in rows of this
