@@ -63,8 +63,9 @@ class HybridConfig:
     # stayed by the look-alike parked cars the camera had passed and every later frame was 9.1 m off, reported
     # only as unverified; with 3.15 m dropped the right direct pose lay 0.3 px from the prediction.
     gap_motion_share: float = 0.5
-    # A recovery too weak to overrule (under overrule_share) is held to the same prediction where the motion has been
-    # predictable: the median relative error of the one-frame predictions over the last prior_frames posed frames
+    # A recovery, or a direct pose the feature map confirms, is held to the same prediction where the motion has been
+    # predictable (where the view repeats, the feature map finds the same look-alike place that direct alignment
+    # locks onto): the median relative error of the one-frame predictions over the last prior_frames posed frames
     # (at least min_prior_frames of them), times the square root of the intervals missed, at most this (ours:
     # half of gap_motion_share, so that the prediction's own error leaves the rule its margin).
     prior_reliability: float = 0.25

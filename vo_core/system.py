@@ -386,7 +386,9 @@ class Odometry:
         self._report_failure(frame, tracking, judgement, result)
         _emit(result, EventKind.RECOVERY_TRIED,
               {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
-        off_prediction = self._weak_recovery_off_prediction(frame, tracking, outcome) if outcome.succeeded else None
+        off_prediction = None if not outcome.succeeded else self._off_reliable_prediction(
+            frame, tracking, outcome.T_world_cam, f"the recovered pose ({outcome.pose.num_inliers} inliers, "
+            f"{outcome.pose.found_fraction:.1%} of the points in view)")
         if not outcome.succeeded or off_prediction:
             details = outcome.details() if off_prediction is None else {**outcome.details(), "reason": off_prediction}
             _emit(result, EventKind.RECOVERY_FAILED, details)
@@ -403,21 +405,25 @@ class Odometry:
         result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
         return outcome
 
-    def _weak_recovery_off_prediction(self, frame: DirectFrame, tracking: DirectTracking, outcome) -> str | None:
-        """After missed frames, why a recovery too weak to overrule a direct pose (under ``overrule_share``) is not
-        taken either: it lies off the motion the time implies (further than ``gap_motion_share`` of the predicted
-        image motion), and that motion has been predictable enough to say so (``_prior_reliable``). Parking, 9.15 m
-        dropped along rows of parked cars: a 5.0 % recovery at a look-alike place 9 m behind, where the direct map
-        restarted and stayed; a handheld camera's motion is not predictable over a second (teddy, 30 frames
-        dropped: the 6.4 % recovery was right, the prediction was not). None where it may be taken."""
-        if outcome.pose.found_fraction >= self.config.fdmo.overrule_share or not self._prior_reliable(tracking):
+    def _off_reliable_prediction(self, frame: DirectFrame, tracking: DirectTracking, T_world_cam: np.ndarray,
+                                 whose: str) -> str | None:
+        """After missed frames, why a pose (``whose``: the recovered one, or a direct one the feature map confirmed)
+        is not taken, however well the feature map supports it: it lies off the motion the time implies (further than
+        ``gap_motion_share`` of the predicted image motion), and that motion has been predictable enough to say so
+        (``_prior_reliable``). Where the view repeats, the feature map's matches find the look-alike place that
+        direct alignment locks onto, so its support is no witness against the motion. Parking, 9.15 m dropped along
+        rows of parked cars: a 5.0 % recovery at a look-alike place 9 m behind, where the direct map restarted and
+        stayed; 5 m (30 frames) dropped at frame 100: the feature map confirmed the direct pose by the cars the
+        camera had passed, and every later frame was 5 m off, reported as checked. A handheld camera's motion is not
+        predictable over a second (teddy, 30 frames dropped: the 6.4 % recovery was right, the prediction was not).
+        None where it may be taken."""
+        if not self._prior_reliable(tracking):
             return None
-        off = self._off_prediction(frame, tracking, outcome.T_world_cam)
+        off = self._off_prediction(frame, tracking, T_world_cam)
         if off is None or not self._strays_from_prediction(off):
             return None
         expected_px, _, apart_px = off
-        return (f"the recovered pose ({outcome.pose.num_inliers} inliers, {outcome.pose.found_fraction:.1%} of the "
-                f"points in view) lies {apart_px:.0f} px from where the last motion puts the camera after "
+        return (f"{whose} lies {apart_px:.0f} px from where the last motion puts the camera after "
                 f"{tracking.intervals_missed:.0f} frame intervals ({expected_px:.0f} px of motion predicted), and the "
                 "motion has been that predictable")
 
@@ -485,6 +491,11 @@ class Odometry:
                                      "of the points in view) is too weakly supported to confirm it")
                 return False
             if agrees:
+                lock = self._off_reliable_prediction(frame, tracking, tracking.T_world_cam,
+                                                     "the direct pose, which the feature map confirms,")
+                if lock is not None:
+                    judgement.reason += f"; {lock}"
+                    return False
                 _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True})
                 return True
             _emit(result, EventKind.TRACKING_UNVERIFIED, {
@@ -552,35 +563,57 @@ class Odometry:
                        result: FrameResult) -> None:
         """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window.
         Where that ends where the motion model's alignment (``direct``) ended, two starts found the same optimum:
-        the direct pose was right, and tracking goes on in the same window at the same scale. Otherwise the direct
-        map restarts at the recovered pose (refined by the alignment where it converged and agrees with the feature
-        map) with the depths of the feature points in view, so that it goes on at the feature map's scale; feature
-        tracking while too few of them are in view.
+        the direct pose was right, and tracking goes on in the same window at the same scale. Where it ends elsewhere
+        but fits the images no better, there is no lock to leave either: the motion model's pose goes on in the same
+        window. Otherwise the direct map restarts at the recovered pose (refined by the alignment where it converged
+        and agrees with the feature map) with the depths of the feature points in view, so that it goes on at the
+        feature map's scale; feature tracking while too few of them are in view.
 
-        Why restart where the alignments differ: the motion model's had locked onto a wrong pose, so the window's
-        points fit the new view poorly, and carrying its scale through them drifted it (teddy, 20 frames dropped:
-        ATE 0.017 m in the same window, 0.0075 m restarted; clean 0.0097 m)."""
+        Why restart where the alignment from the recovered pose fits better: the motion model's had locked onto a
+        worse optimum, so the window's points fit the new view poorly, and carrying its scale through them drifted it
+        (teddy, 20 frames dropped at 100: RMSE 13.2 against 12.1; ATE 0.017 m in the same window, 0.009 m
+        restarted). Why not where it fits no better: the feature pose's disagreement is then the feature map's own
+        error, and a restart trades a window of ~2,000 points for the few dozen feature points in view, at a young
+        feature map's depths (teddy, 13 frames missed right after the start, live under load: 75 points from the
+        start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
+        map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
         T_world_cam, refined = outcome.T_world_cam, False
         if direct is not None:
             tracking = self.direct.track(frame, T_world_cam)
             result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
-            if tracking.converged and self._same_optimum(outcome, direct, tracking):
+            resumed = self._resumed_alignment(outcome, direct, tracking)
+            if resumed is not None:
+                alignment, why = resumed
                 _emit(result, EventKind.DIRECT_RESUMED,
-                      {"keyframe": direct.reference.frame_index, "rmse": round(float(tracking.rmse_after), 3),
-                       "last_rmse": round(float(tracking.last_rmse), 3), "stage": outcome.stage})
-                self._accept(frame, tracking, result)
+                      {"keyframe": direct.reference.frame_index, "rmse": round(float(alignment.rmse_after), 3),
+                       "last_rmse": round(float(alignment.last_rmse), 3), "stage": outcome.stage, "why": why,
+                       **_alignment_fits(direct, tracking)})
+                self._accept(frame, alignment, result)
                 return
             refined = tracking.converged and self.features.explained(
                 outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
             T_world_cam = tracking.T_world_cam if refined else T_world_cam
         uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam)
         if len(uv) >= self.config.fdmo.min_restart_points:
+            fits = _alignment_fits(direct, tracking) if direct is not None else {}
             _emit(result, EventKind.DIRECT_RESTARTED,
-                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined})
+                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined,
+                   **fits})
             self.mode = _Mode.DIRECT
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
             return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
+
+    def _resumed_alignment(self, outcome, direct: DirectTracking,
+                           retracked: DirectTracking) -> tuple[DirectTracking, str] | None:
+        """The alignment the same window goes on with after a recovery, and why; None where the map restarts."""
+        if not (direct.converged and retracked.converged):
+            return None
+        if self._same_optimum(outcome, direct, retracked):
+            return retracked, "both alignments reached the same optimum"
+        if retracked.rmse_after < direct.rmse_after:
+            return None  # the motion model's alignment locked onto a worse optimum
+        return direct, "the alignment from the recovered pose fits the images no better than the motion model's"
 
     def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
         """Whether the alignment from the recovered pose ended where the motion model's did (within
@@ -588,8 +621,6 @@ class Odometry:
         pose then differs from it by the feature map's own error, which the images resolve better (teddy played
         forward and back: at three recoveries both alignments met 0.4-0.6 cm from the truth, the feature poses
         were 0.6-2 cm off and the direct pose explained only 29-59 % of their inliers)."""
-        if not direct.converged:
-            return False
         shift_px = self.features.reprojection_shift(outcome.pose, direct.T_world_cam, retracked.T_world_cam)
         return shift_px <= self.config.fdmo.same_optimum_px
 
@@ -754,6 +785,14 @@ class _NewFeatureKeyframe:
     image: np.ndarray
     T_world_cam: np.ndarray
     median_depth: float
+
+
+def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:
+    """The RMSE of the motion model's alignment and of the one from the recovered pose, for the events."""
+    def rounded(rmse: float) -> float | None:
+        return round(float(rmse), 3) if np.isfinite(rmse) else None
+
+    return {"motion_model_rmse": rounded(direct.rmse_after), "recovered_pose_rmse": rounded(retracked.rmse_after)}
 
 
 def _ms_since(start: float) -> float:
