@@ -47,20 +47,21 @@ def test_the_bundled_direct_run_is_unchanged():
 
 
 @pytest.mark.skipif(not BUNDLED.is_dir(), reason="the bundled sequence is not in this checkout")
-def test_frames_missed_after_the_start_do_not_trade_the_window_for_a_young_feature_map():
+@pytest.mark.parametrize("seed, why", [(0, "no better"), (1, "too few to restart from")])
+def test_frames_missed_after_the_start_do_not_trade_the_window_for_a_young_feature_map(seed, why):
     """Live under load, frames 4-16 and 18-22 were missed right after the start. The frame after the gap is suspect,
-    and the feature map (the start's two keyframes, 3 frames apart) disagrees with its direct pose; direct alignment
-    from the recovered pose ends 1.3 px away but fits the images no better (RMSE 13.62 against 13.59): no lock to
-    leave. The direct window goes on at its scale: restarted on the feature map's 75 points instead, its scale collapsed 10x,
-    unreported, and the run ended 0.10 m off (0.005 m now)."""
+    and the feature map (the start's two keyframes, 3 frames apart) disagrees with its direct pose. Restarted on the
+    feature map's ~75 two-view points, the direct map's scale collapsed 10x, unreported, and the run ended 0.09-0.13 m
+    off. The same window goes on instead (0.005 m): at seed 0 the alignment from the recovered pose ends 1.3 px away
+    but fits the images no better (RMSE 13.62 against 13.59), no lock to leave; at seed 1 it fits them better (13.37
+    against 20.03), but none of the points in view is seen by 3 keyframes, too few to restart from."""
     sequence = open_sequence(BUNDLED)
-    odometry = Odometry(load_config(overrides=["method=fdmo"]), sequence.camera)
+    odometry = Odometry(load_config(overrides=["method=fdmo", f"seed={seed}"]), sequence.camera)
     missed = set(range(4, 17)) | set(range(18, 23))
     results = [odometry.track(frame) for frame in sequence if frame.index not in missed]
     events = [e for r in results for e in r.events]
     resumed = [e for e in events if e.kind is EventKind.DIRECT_RESUMED]
-    assert resumed and "no better" in resumed[0].details["why"]
-    assert resumed[0].details["motion_model_rmse"] <= resumed[0].details["recovered_pose_rmse"]
+    assert resumed and why in resumed[0].details["why"]
     assert not {EventKind.DIRECT_RESTARTED, EventKind.REINITIALIZATION} & {e.kind for e in events}
     posed = [r for r in results if r.T_world_cam is not None]
     estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))

@@ -593,14 +593,25 @@ class Odometry:
             refined = tracking.converged and self.features.explained(
                 outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
             T_world_cam = tracking.T_world_cam if refined else T_world_cam
-        uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam)
+        min_observations = self.config.fdmo.min_restart_observations
+        uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam, min_observations)
+        fits = _alignment_fits(direct, tracking) if direct is not None else {}
         if len(uv) >= self.config.fdmo.min_restart_points:
-            fits = _alignment_fits(direct, tracking) if direct is not None else {}
             _emit(result, EventKind.DIRECT_RESTARTED,
                   {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined,
                    **fits})
             self.mode = _Mode.DIRECT
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
+            return
+        converged = [] if direct is None else [a for a in (direct, tracking) if a.converged]
+        if converged:  # the window's points, however weak here, against depths the feature map has not settled
+            alignment = min(converged, key=lambda a: a.rmse_after)
+            _emit(result, EventKind.DIRECT_RESUMED,
+                  {"keyframe": direct.reference.frame_index, "rmse": round(float(alignment.rmse_after), 3),
+                   "last_rmse": round(float(alignment.last_rmse), 3), "stage": outcome.stage,
+                   "why": (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or "
+                           f"more: too few to restart from (the better fit of the two alignments goes on)"), **fits})
+            self._accept(frame, alignment, result)
             return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
 

@@ -64,10 +64,14 @@ class FeatureOdometry:
         from b: how far apart two poses are, in what the images can tell apart (inf with no point in front)."""
         return image_motion_px(self.camera, self.map.points.position[pose.point_ids[pose.inlier]], T_world_a, T_world_b)
 
-    def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched:
-        where a direct map restarted there gets its first depths (at the feature map's scale)."""
-        view = project_points(self.map.points, pose.point_ids[pose.inlier], T_world_cam, self.camera, self.config.orb)
+    def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray,
+                       min_observations: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched
+        that at least ``min_observations`` keyframes observe: where a direct map restarted there gets its first depths
+        (at the feature map's scale)."""
+        matched = pose.point_ids[pose.inlier]
+        matched = matched[self.map.observation_counts(matched) >= min_observations]
+        view = project_points(self.map.points, matched, T_world_cam, self.camera, self.config.orb)
         return view.uv, 1.0 / transform_points(se3_inverse(T_world_cam), self.map.points.position[view.point_ids])[:, 2]
 
     def points_world(self) -> np.ndarray:
