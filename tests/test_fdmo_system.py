@@ -220,6 +220,21 @@ def test_a_feature_pose_too_weakly_supported_does_not_overrule_the_direct_one():
     assert not {EventKind.RECOVERY_TRIED, EventKind.DIRECT_RESTARTED, EventKind.DIRECT_RESUMED} & set(kinds(results))
 
 
+def make_stay_behind(odometry: Odometry, frame_index: int) -> None:
+    """The motion model's direct alignment of frame ``frame_index`` made to stay where the last posed frame was (the
+    lock onto the view it left that a large jump causes where the images look alike)."""
+    track = odometry.direct.track
+
+    def staying_behind(frame, prior=None):
+        tracking = track(frame, prior)
+        if frame.index != frame_index or prior is not None or not tracking.converged:
+            return tracking
+        T_frame_ref = np.linalg.inv(odometry.posed[-1][1]) @ tracking.reference.T_world_cam
+        return dataclasses.replace(tracking, result=dataclasses.replace(tracking.result, T_frame_ref=T_frame_ref))
+
+    odometry.direct.track = staying_behind
+
+
 @pytest.mark.parametrize("lags", [False, True])
 def test_after_missed_frames_a_direct_pose_that_stays_behind_is_not_kept_on_weak_evidence(lags, clean_ate):
     """Direct alignment after a large jump locks onto the view it left where the images look alike (parking's rows
@@ -232,17 +247,8 @@ def test_after_missed_frames_a_direct_pose_that_stays_behind_is_not_kept_on_weak
     odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", "fdmo.overrule_share=1.0"]),
                         CAMERA)
     after_gap = FAULT_START + (5 if lags else 3)
-    track = odometry.direct.track
-
-    def staying_behind(frame, prior=None):
-        tracking = track(frame, prior)
-        if frame.index != after_gap or prior is not None or not tracking.converged:
-            return tracking
-        T_frame_ref = np.linalg.inv(odometry.posed[-1][1]) @ tracking.reference.T_world_cam
-        return dataclasses.replace(tracking, result=dataclasses.replace(tracking.result, T_frame_ref=T_frame_ref))
-
     if lags:
-        odometry.direct.track = staying_behind
+        make_stay_behind(odometry, after_gap)
     results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < after_gap]
     after = next(r for r in results if r.frame_index == after_gap)
     if not lags:
@@ -269,16 +275,7 @@ def test_a_direct_pose_that_stays_behind_is_refused_even_where_the_feature_map_c
     and what the frame gets instead keeps the run near the clean one."""
     odometry = Odometry(load_config(overrides=["method=fdmo"]), CAMERA)
     after_gap = FAULT_START + 5
-    track = odometry.direct.track
-
-    def staying_behind(frame, prior=None):
-        tracking = track(frame, prior)
-        if frame.index != after_gap or prior is not None or not tracking.converged:
-            return tracking
-        T_frame_ref = np.linalg.inv(odometry.posed[-1][1]) @ tracking.reference.T_world_cam
-        return dataclasses.replace(tracking, result=dataclasses.replace(tracking.result, T_frame_ref=T_frame_ref))
-
-    odometry.direct.track = staying_behind
+    make_stay_behind(odometry, after_gap)
     explained = odometry.features.explained
     odometry.features.explained = lambda pose, T_world_cam, features: 1.0 if np.allclose(
         T_world_cam, odometry.posed[-1][1]) else explained(pose, T_world_cam, features)
