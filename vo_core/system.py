@@ -40,7 +40,7 @@ from typing import Protocol
 import numpy as np
 
 from vo_core.config import Config
-from vo_core.direct.divergence import Judgement, Verdict, judge
+from vo_core.direct.divergence import Judgement, Verdict, judge, rounded_rmse
 from vo_core.direct.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.errors import InputError
@@ -593,20 +593,15 @@ class Odometry:
             result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
             resumed = self._resumed_alignment(outcome, direct, tracking)
             if resumed is not None:
-                alignment, why = resumed
-                _emit(result, EventKind.DIRECT_RESUMED,
-                      {"keyframe": direct.reference.frame_index, "rmse": round(float(alignment.rmse_after), 3),
-                       "last_rmse": round(float(alignment.last_rmse), 3), "stage": outcome.stage, "why": why,
-                       **_alignment_fits(direct, tracking)})
-                self._accept(frame, alignment, result)
+                self._resume_window(frame, outcome, direct, tracking, *resumed, result)
                 return
             refined = tracking.converged and self.features.explained(
                 outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
             T_world_cam = tracking.T_world_cam if refined else T_world_cam
         min_observations = self.config.fdmo.min_restart_observations
         uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam, min_observations)
-        fits = _alignment_fits(direct, tracking) if direct is not None else {}
         if len(uv) >= self.config.fdmo.min_restart_points:
+            fits = _alignment_fits(direct, tracking) if direct is not None else {}
             _emit(result, EventKind.DIRECT_RESTARTED,
                   {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined,
                    **fits})
@@ -615,15 +610,22 @@ class Odometry:
             return
         converged = [] if direct is None else [a for a in (direct, tracking) if a.converged]
         if converged:  # the window's points, however weak here, against depths the feature map has not settled
-            alignment = min(converged, key=lambda a: a.rmse_after)
-            _emit(result, EventKind.DIRECT_RESUMED,
-                  {"keyframe": direct.reference.frame_index, "rmse": round(float(alignment.rmse_after), 3),
-                   "last_rmse": round(float(alignment.last_rmse), 3), "stage": outcome.stage,
-                   "why": (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or "
-                           f"more: too few to restart from (the better fit of the two alignments goes on)"), **fits})
-            self._accept(frame, alignment, result)
+            why = (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or more: too few "
+                   "to restart from (the better fit of the two alignments goes on)")
+            self._resume_window(frame, outcome, direct, tracking, min(converged, key=lambda a: a.rmse_after), why,
+                                result)
             return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
+
+    def _resume_window(self, frame: DirectFrame, outcome, direct: DirectTracking, retracked: DirectTracking,
+                       alignment: DirectTracking, why: str, result: FrameResult) -> None:
+        """After a recovery, the same window goes on with ``alignment`` (the motion model's, ``direct``, or the one
+        from the recovered pose, ``retracked``), reported with both fits and why."""
+        _emit(result, EventKind.DIRECT_RESUMED,
+              {"keyframe": direct.reference.frame_index, "rmse": rounded_rmse(alignment.rmse_after),
+               "last_rmse": rounded_rmse(alignment.last_rmse), "stage": outcome.stage, "why": why,
+               **_alignment_fits(direct, retracked)})
+        self._accept(frame, alignment, result)
 
     def _resumed_alignment(self, outcome, direct: DirectTracking,
                            retracked: DirectTracking) -> tuple[DirectTracking, str] | None:
@@ -810,10 +812,8 @@ class _NewFeatureKeyframe:
 
 def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:
     """The RMSE of the motion model's alignment and of the one from the recovered pose, for the events."""
-    def rounded(rmse: float) -> float | None:
-        return round(float(rmse), 3) if np.isfinite(rmse) else None
-
-    return {"motion_model_rmse": rounded(direct.rmse_after), "recovered_pose_rmse": rounded(retracked.rmse_after)}
+    return {"motion_model_rmse": rounded_rmse(direct.rmse_after),
+            "recovered_pose_rmse": rounded_rmse(retracked.rmse_after)}
 
 
 def _ms_since(start: float) -> float:

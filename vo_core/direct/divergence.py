@@ -57,9 +57,9 @@ class Judgement:
 
     def details(self, tracking: DirectTracking) -> dict:
         return {
-            "verdict": self.verdict.value, "reason": self.reason, "ratio": _rounded(self.ratio),
-            "threshold": self.threshold, "rmse_before": _rounded(tracking.rmse_before),
-            "rmse_after": _rounded(tracking.rmse_after), "last_rmse": _rounded(tracking.last_rmse),
+            "verdict": self.verdict.value, "reason": self.reason, "ratio": rounded_rmse(self.ratio),
+            "threshold": self.threshold, "rmse_before": rounded_rmse(tracking.rmse_before),
+            "rmse_after": rounded_rmse(tracking.rmse_after), "last_rmse": rounded_rmse(tracking.last_rmse),
             "hypotheses_tried": tracking.hypotheses_tried,
         }
 
@@ -89,5 +89,6 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
     return Judgement(Verdict.TRUSTED, ratio, threshold, "")
 
 
-def _rounded(value: float) -> float | None:
+def rounded_rmse(value: float) -> float | None:
+    """An RMSE or ratio as the events give it: 3 decimals, None where it is not finite."""
     return round(float(value), 3) if np.isfinite(value) else None
