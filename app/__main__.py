@@ -4,4 +4,5 @@ import sys
 
 from app.cli import command_line
 
-sys.exit(command_line())
+if __name__ == "__main__":  # not when a spawned process (the feature map's) imports it again
+    sys.exit(command_line())

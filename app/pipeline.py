@@ -138,7 +138,7 @@ def track(config: Config, camera, frames: Iterable) -> list[FrameResult]:
 def check_method(config: Config, camera) -> None:
     """Build the odometry once, without sinks, so that a method that does not exist yet (or a setting its front
     end refuses) raises InputError before any viewer starts or any file is written."""
-    Odometry(config, camera)
+    Odometry(config, camera).close()
 
 
 def run_sequence(

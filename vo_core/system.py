@@ -44,6 +44,7 @@ from vo_core.direct.divergence import Judgement, Verdict, judge, rounded_rmse
 from vo_core.direct.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.errors import InputError
+from vo_core.features.config import FeatureConfig
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
@@ -83,6 +84,18 @@ def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
     )
 
 
+def _feature_half(config: FeatureConfig, camera: PinholeCamera, threaded: bool):
+    """FDMO's feature half: with mapping threads in a process of its own (its Python would hold the GIL the
+    tracking and the direct mapping threads need), else here."""
+    if threaded:
+        from vo_core.features.feature_process import FeatureProcess
+
+        return FeatureProcess(config, camera)
+    from vo_core.features.feature_odometry import FeatureOdometry
+
+    return FeatureOdometry(config, camera)
+
+
 class _Mode(Enum):
     DIRECT = "direct"  # the direct half tracks (or initializes)
     FEATURES = "features"  # feature-based tracking until the direct map can restart
@@ -98,24 +111,22 @@ class Odometry:
         if self.front_end is None:
             make_initializer = initializer_factory(config.direct, config.init, camera, config.seed)
             self.direct = DirectOdometry(config.direct, camera, make_initializer, config.seed)
-            if config.method == "fdmo":
-                from vo_core.features.feature_odometry import FeatureOdometry
-
-                self.features = FeatureOdometry(config.features, camera)
         mapping = config.mapping
         threaded = mapping.threaded and self.front_end is None
+        if config.method == "fdmo":
+            self.features = _feature_half(config.features, camera, threaded)
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
         # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
-        # its feature mapping in a thread of its own too).
+        # its feature mapping in a thread of its own too); the thread waits while the feature half's process maps.
         has_features = self.features is not None
         self.feature_mapper = MappingThread(None, "feature-mapping") if threaded and has_features else None
         # Held by the feature mapper's jobs, and by the tracking thread where it checks a pose against the feature
         # map while the mappers work on (_stands_beside_mapping).
         self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
-        self.feature_keyframes_pending: set[int] = set()  # direct keyframes handed to the feature map, not added yet
+        self.feature_keyframes_given: set[int] = set()  # direct keyframes handed to the feature map since it started
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
@@ -202,6 +213,8 @@ class Odometry:
             self.mapper.close()
             if self.feature_mapper is not None:
                 self.feature_mapper.close()
+        if self.features is not None:
+            self.features.close()
         self.bus.close()
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 2
@@ -351,7 +364,7 @@ class Odometry:
             if result.T_world_cam is not None:
                 return
         elif self.features is not None and not self.features.empty:
-            outcome = self.features.recover(frame.frame.image, self.features.map.newest().frame_index,
+            outcome = self.features.recover(frame.frame.image, self.features.newest_keyframe,
                                             self._predicted_pose(frame))
             result.timings_ms["recovery"] = outcome.ms
             if outcome.succeeded:
@@ -362,6 +375,7 @@ class Odometry:
         if outcome is not None and self.features is not None:
             if not self.features.empty:
                 self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
+                self.feature_keyframes_given.clear()
                 self.posed = []
             self._map_features(result, initialization=outcome)
 
@@ -650,7 +664,7 @@ class Odometry:
     def _track_features(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the
         direct map restarts as soon as enough feature depths are in view."""
-        anchor = self.features.map.newest().frame_index
+        anchor = self.features.newest_keyframe
         outcome = self.features.track(frame.frame.image, self._predicted_pose(frame), anchor)
         if not outcome.succeeded:
             outcome = self.features.recover(frame.frame.image, anchor)
@@ -751,10 +765,9 @@ class Odometry:
         """The direct keyframes the feature map has not been given yet, and the window's poses, read now, where the
         direct map is not changing: with mapping threads the feature map grows from them beside the direct map."""
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
-        given = self.features.map.keyframes, self.feature_keyframes_pending
         new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth)
-               for k in self.direct.keyframes if all(k.frame_index not in keyframes for keyframes in given)]
-        self.feature_keyframes_pending.update(k.frame_index for k in new)
+               for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
+        self.feature_keyframes_given.update(k.frame_index for k in new)
         return new, window_poses
 
     def _add_feature_keyframes(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
@@ -762,7 +775,6 @@ class Odometry:
         for keyframe in new:
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
-            self.feature_keyframes_pending.discard(keyframe.frame_index)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
                 report.tracked_points = self._add_initial_tracks(initialization, window_poses)
             result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
@@ -791,7 +803,7 @@ class Odometry:
         pose = outcome.pose
         if pose is None or outcome.features is None or len(pose.point_ids) == 0:
             return
-        points = self.features.map.points.position[pose.point_ids]
+        points = self.features.point_positions(pose.point_ids)
         uv_from, depth = project_world(self.camera, reference.T_world_cam, points)
         front = depth > 0
         uv_to = outcome.features.features.uv[pose.feature_ids[front]]

@@ -33,6 +33,12 @@ class FeatureOdometry:
     def empty(self) -> bool:
         return len(self.map) == 0
 
+    @property
+    def newest_keyframe(self) -> int | None:
+        """The frame index of the newest feature keyframe."""
+        newest = self.map.newest()
+        return None if newest is None else newest.frame_index
+
     def reset(self) -> None:
         """A map at a new scale starts over (the direct map initialized again from scratch)."""
         self.map = FeatureMap()
@@ -74,8 +80,14 @@ class FeatureOdometry:
         view = project_points(self.map.points, matched, T_world_cam, self.camera, self.config.orb)
         return view.uv, 1.0 / transform_points(se3_inverse(T_world_cam), self.map.points.position[view.point_ids])[:, 2]
 
+    def point_positions(self, point_ids: np.ndarray) -> np.ndarray:
+        return self.map.points.position[point_ids]
+
     def points_world(self) -> np.ndarray:
         return self.map.points.position[self.map.points.alive]
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         return {k.frame_index: k.T_world_cam for k in self.map.keyframes.values()}
+
+    def close(self) -> None:
+        """Nothing to release here (``FeatureProcess`` ends its process)."""

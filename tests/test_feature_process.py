@@ -1,0 +1,86 @@
+"""The feature half in a process of its own (vo_core/features/feature_process.py): it answers as FeatureOdometry
+here does, its errors are raised here, and a closed or dead process says so instead of hanging."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vo_core.features.config import FeatureConfig
+from vo_core.features.feature_odometry import FeatureOdometry
+from vo_core.features.feature_process import FeatureProcess
+from vo_core.synthetic import make_sequence
+
+SEQUENCE = make_sequence("smooth", num_frames=13, seed=2, width=320, height=240)
+KEYFRAMES = [SEQUENCE[i] for i in (0, 4, 8, 12)]
+
+
+def grow(features) -> list[dict]:
+    """Keyframes at the true poses, every one in the direct window; the reports as the events carry them."""
+    reports = []
+    window = {}
+    for frame in KEYFRAMES:
+        window[frame.index] = frame.T_world_cam
+        depth = float(np.median(frame.depth[np.isfinite(frame.depth)]))
+        report = features.add_keyframe(frame.index, frame.timestamp, frame.image, frame.T_world_cam, depth, window)
+        reports.append({**report.as_details(), "ms": None})
+    return reports
+
+
+@pytest.fixture(scope="module")
+def both():
+    here, there = FeatureOdometry(FeatureConfig(), SEQUENCE.camera), FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    reports = grow(here), grow(there)
+    yield here, there, reports
+    there.close()
+
+
+def test_the_process_grows_the_same_feature_map(both):
+    here, there, (reports_here, reports_there) = both
+    assert reports_there == reports_here and sum(r["new_points"] for r in reports_here) > 100
+    assert np.array_equal(there.points_world(), here.points_world())
+    assert there.newest_keyframe == here.newest_keyframe == KEYFRAMES[-1].index and not there.empty
+    poses_here, poses_there = here.keyframe_poses(), there.keyframe_poses()
+    assert poses_there.keys() == poses_here.keys()
+    assert all(np.array_equal(poses_there[k], poses_here[k]) for k in poses_here)
+
+
+def test_the_process_recovers_as_this_one_does(both):
+    here, there, _ = both
+    frame = SEQUENCE[10]
+    outcome_here = here.recover(frame.image, KEYFRAMES[-1].index)
+    outcome_there = there.recover(frame.image, KEYFRAMES[-1].index)
+    assert outcome_here.succeeded and outcome_there.succeeded
+    assert np.array_equal(outcome_there.pose.T_world_cam, outcome_here.pose.T_world_cam)
+    assert np.array_equal(there.point_positions(outcome_there.pose.point_ids),
+                          here.point_positions(outcome_here.pose.point_ids))
+
+
+def test_an_error_there_is_raised_here(both):
+    here, there, _ = both
+    with pytest.raises(Exception) as raised_here:
+        here.point_positions(np.array([10**9]))
+    with pytest.raises(type(raised_here.value), match=str(raised_here.value)):
+        there.point_positions(np.array([10**9]))
+    assert there.newest_keyframe == KEYFRAMES[-1].index  # it answers on
+
+
+def test_only_the_feature_halfs_methods_are_offered(both):
+    _, there, _ = both
+    with pytest.raises(AttributeError, match="'map'"):
+        there.map  # the map lives in the process alone
+
+
+def test_a_closed_or_dead_process_says_so():
+    closed = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    assert closed.empty
+    closed.close()
+    closed.close()
+    with pytest.raises(RuntimeError, match="closed before points_world"):
+        closed.points_world()
+
+    dead = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    dead._process.kill()
+    with pytest.raises(RuntimeError, match="ended unexpectedly"):
+        dead.points_world()
+    dead.close()
