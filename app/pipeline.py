@@ -10,6 +10,7 @@ as the run goes, and metrics.json is (re)written in a ``finally``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import Counter, defaultdict
 from collections.abc import Iterable, Sequence as SequenceOf
@@ -137,8 +138,9 @@ def track(config: Config, camera, frames: Iterable) -> list[FrameResult]:
 
 def check_method(config: Config, camera) -> None:
     """Build the odometry once, without sinks, so that a method that does not exist yet (or a setting its front
-    end refuses) raises InputError before any viewer starts or any file is written."""
-    Odometry(config, camera).close()
+    end refuses) raises InputError before any viewer starts or any file is written. Built without mapping threads:
+    what they add (a process for the feature half) would start only to be stopped."""
+    Odometry(dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, threaded=False)), camera).close()
 
 
 def run_sequence(

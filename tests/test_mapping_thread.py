@@ -72,6 +72,47 @@ def test_live_threaded_mapping_never_waits_for_keyframes_and_stays_accurate(sync
     assert ate < 3 * sync_ate
 
 
+def test_offline_the_next_frame_is_tracked_while_the_keyframe_is_mapped_on():
+    """Offline, tracking waits for a keyframe's new reference, not for its marginalization and new candidates (DSO
+    hands its tracker the reference right after the window optimization): the next frame is tracked meanwhile, and
+    accepted once the keyframe is mapped whole."""
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    odometry = Odometry(load_config(overrides=["method=fdmo", *THREADED]), SMOOTH.camera)
+    frames = iter(SMOOTH)
+    for frame in frames:
+        odometry.track(frame)
+        if odometry.direct.initialized and not odometry.direct.on_probation:
+            break
+    held, release, tracked = threading.Event(), threading.Event(), threading.Event()
+    select, track = odometry.direct.selector.select, odometry.direct.track
+
+    def held_select(*args):
+        held.set()
+        release.wait(10.0)
+        return select(*args)
+
+    def noted_track(*args):
+        tracked.set()
+        return track(*args)
+
+    odometry.direct.selector.select = held_select
+    keyframe = next(frame for frame in frames if odometry.track(frame).is_keyframe)
+    assert held.wait(5.0)
+    odometry.direct.track = noted_track
+    after = []
+    tracking = threading.Thread(target=lambda: after.append(odometry.track(next(frames))))
+    tracking.start()
+    tracked_while_mapping = tracked.wait(5.0)
+    accepted_while_mapping = bool(after)
+    release.set()
+    tracking.join()
+    odometry.close()
+    assert tracked_while_mapping and not accepted_while_mapping
+    assert after[0].frame_index == keyframe.index + 1 and after[0].T_world_cam is not None
+
+
 def test_keyframes_mapped_on_the_thread_reach_the_sinks_from_the_tracking_thread():
     from vo_core.config import load_config
     from vo_core.system import Odometry

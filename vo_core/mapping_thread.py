@@ -9,10 +9,12 @@ GIL (numba ``nogil``, OpenCV), so the threads overlap where the work is in them;
 
 Two modes (``mapping.wait_for_keyframes``):
 - offline (DSO's linearizeOperation, but with the feature mapping and the tracing beside tracking): no frame is
-  tracked while a keyframe is being mapped, and every frame is traced, so both maps are the synchronous run's and so
-  are the poses (but a keyframe's own: its result goes out with the tracked pose, before the window optimization
-  refines it); what runs beside tracking is the tracing of the frames and the feature map's growth at each
-  keyframe (a job of its own);
+  tracked before the pending keyframe's new reference is out (``wait_reference``: right after the window
+  optimization) nor accepted before that keyframe is mapped whole, and every frame is traced, so both maps are the
+  synchronous run's and so are the poses (but a keyframe's own: its result goes out with the tracked pose, before
+  the window optimization refines it); what runs beside tracking is the tracing of the frames, a keyframe's
+  marginalization and new candidates, and the feature map's growth at each keyframe (a job of its own, carried out
+  by the feature half's process);
 - live (DSO's real-time mode): tracking never waits for a keyframe; while one is pending no other is asked for (a
   later frame becomes the keyframe once the mapper is free), and when frames queue up the mapper catches up (DSO's
   needToKetchupMapping): a frame that is not a keyframe is no longer traced while more than ``max_queued_frames``
@@ -55,6 +57,7 @@ class _Queued:
     job: Job
     keyframe: bool  # a direct keyframe: tracking waits for it before it asks for the next one
     may_skip: bool  # only traces: left out when the mapper catches up
+    released: bool = False  # a keyframe whose tracking reference is out (``release_tracking``)
 
 
 class MappingThread:
@@ -95,6 +98,21 @@ class MappingThread:
     def wait_keyframe(self) -> None:
         """Until the pending keyframe is mapped and its reference published."""
         self._wait(lambda: not self._keyframe_queued())
+
+    def wait_reference(self) -> None:
+        """Until the pending keyframe's tracking reference is published; the mapper may still be mapping the rest of
+        it (marginalization, new immature points) while the next frame is tracked."""
+        self._wait(lambda: not any(q.keyframe for q in self._queue)
+                   and (self._running is None or not self._running.keyframe or self._running.released))
+
+    def release_tracking(self) -> None:
+        """The running keyframe's tracking reference is published (DSO too hands its tracker the new keyframe right
+        after the window optimization, before the marginalization). Called from elsewhere (a reference made on the
+        tracking thread, while the mapper is idle), it does nothing."""
+        with self._condition:
+            if self._running is not None and threading.current_thread() is self._thread:
+                self._running.released = True
+                self._condition.notify_all()
 
     def _wait(self, done: Callable[[], bool]) -> None:
         with self._condition:

@@ -118,6 +118,8 @@ class Odometry:
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
+        if self.mapper is not None:
+            self.direct.reference_published = self.mapper.release_tracking
         # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
         # its feature mapping in a thread of its own too); the thread waits while the feature half's process maps.
         has_features = self.features is not None
@@ -231,7 +233,7 @@ class Odometry:
             self._track_features(frame, result)
         elif self.direct.initialized and not self._start_failed(frame, result):
             if self.mapper is not None and self.config.mapping.wait_for_keyframes:
-                self.mapper.wait_keyframe()  # tracked against the newest keyframe, as synchronously
+                self.mapper.wait_reference()  # tracked against the newest keyframe, as synchronously
             self._track_direct(frame, result)
         else:
             self._own_the_maps()
@@ -318,6 +320,8 @@ class Odometry:
         if self.mapper is None or inline:
             self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
             return
+        if self.config.mapping.wait_for_keyframes:
+            self.mapper.wait_keyframe()  # the last keyframe is mapped whole before the next is asked for
         self.direct.commit(frame, tracking, result)
         make_keyframe = self.direct.wants_keyframe(frame, tracking) and not self.mapper.keyframe_pending
         result.is_keyframe = make_keyframe

@@ -29,6 +29,7 @@ The initializer is handed in as a factory: the direct half does not know which o
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
@@ -223,6 +224,9 @@ class DirectOdometry:
         self.seed = seed
         self.selector = PixelSelector(config.selector, seed)
         self.reference: TrackingReference | None = None  # published by _set_tracking_reference
+        # Told when a keyframe's reference is published, before its keyframe is mapped whole (a mapping thread
+        # lets tracking go on then: MappingThread.release_tracking).
+        self.reference_published: Callable[[], None] = lambda: None
         self.window_optimizer = WindowOptimizer(
             config.window, config.tracker.huber_threshold, config.immature.outlier_threshold,
             config.immature.outlier_sum_component,
@@ -595,7 +599,7 @@ class DirectOdometry:
     def _add_keyframe(
         self, frame: DirectFrame, T_world_cam: np.ndarray, affine: np.ndarray, result: FrameResult
     ) -> Keyframe:
-        """makeKeyFrame: slide the window, activate points, optimize, marginalize, select, new reference."""
+        """makeKeyFrame: slide the window, activate points, optimize, new reference, marginalize, select."""
         pyramid = frame.pyramid
         keyframe = Keyframe(
             frame.index, frame.timestamp, frame.frame.image, pyramid, T_world_cam.copy(),
@@ -603,19 +607,21 @@ class DirectOdometry:
             keyframe_id=self.keyframes[-1].keyframe_id + 1 if self.keyframes else 0,
         )
         # makeKeyFrame's order: flag the keyframes that will leave, optimize the window with them and the new
-        # one, then marginalize them (so the prior links them to the newest keyframe too).
+        # one, hand tracking the new reference (setCoarseTrackingRef: the leaving keyframes' points included), then
+        # marginalize them (so the prior links them to the newest keyframe too) and select the new candidates.
+        # With a mapping thread, tracking goes on from the reference on while the rest is mapped.
         dropped = self._keyframes_to_marginalize(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
         if self.config.window.enabled and len(self.keyframes) >= 2:
             self._optimize_window(frame, result)
+        self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
+        self._set_tracking_reference(keyframe)
         for frame_index in dropped:
             self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
                               frame, result)
         selection = self.selector.select(pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
-        self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
-        self._set_tracking_reference(keyframe)
         for older in self.keyframes[:-1]:
             older.pyramid.release_packed()  # from here on read through their intensities
         result.is_keyframe = True
@@ -837,6 +843,7 @@ class DirectOdometry:
         )
         # One assignment publishes it whole: the tracking thread reads ``self.reference`` once per frame.
         self.reference = TrackingReference(keyframe, tracker, keyframe.T_world_cam.copy(), keyframe.affine.copy())
+        self.reference_published()
 
     def _visible(self, uv: np.ndarray) -> np.ndarray:
         return uv[self.camera.in_image(uv)]
