@@ -201,6 +201,11 @@ def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_
     assert restart.details["recovered_pose_rmse"] < restart.details["motion_model_rmse"]
     kept, _ = after_gap(["fdmo.same_optimum_px=0"], motion_model_fit=0.7)
     assert "no better" in next(e for e in kept.events if e.kind is EventKind.DIRECT_RESUMED).details["why"]
+    # Unless the recovery puts the camera at another place: the motion model's alignment explains (almost) none of
+    # its inliers, and fits no window view well there, whatever it fits better than (parking played back 70 frames).
+    elsewhere, _ = after_gap(["fdmo.same_optimum_px=0"], explained=0.0, motion_model_fit=0.7)
+    assert EventKind.DIRECT_RESTARTED in [e.kind for e in elsewhere.events]
+    assert EventKind.DIRECT_RESUMED not in [e.kind for e in elsewhere.events]
     posed = [r for r in results if r.T_world_cam is not None]
     estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
     assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 1.5 * clean_ate + 1e-3

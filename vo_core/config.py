@@ -49,6 +49,11 @@ class HybridConfig:
     # took a run from 0.010 to 0.023 m. The feature pose's disagreement is not asked for: it is the feature map's
     # own error (the direct pose explained 29-79 % of the recovery's inliers where it was the better pose).
     same_optimum_px: float = 1.0
+    # A conclusive recovery puts the camera at another place than a direct pose that explains less than this share
+    # of its inlier matches (ours: where a direct pose was right beside a feature pose off by the map's own error, it
+    # explained 72 % of them; one 10.9 m off after parking was played back 70 frames, none). Such a direct pose is
+    # not kept after the recovery, whatever its photometric fit.
+    elsewhere_share: float = 0.2
     # The feature map's pose overrules a suspect direct pose that converged only when it found this share of the
     # map points in view (the share a search around an estimate needs, features.recovery): below it, the feature
     # map is too weakly anchored in the view to say the direct pose is wrong, and the direct pose is kept,
@@ -99,6 +104,10 @@ class MappingConfig:
     wait_for_keyframes: bool = True
     # DSO's mappingLoop, live: with more than 3 frames waiting, the mapper catches up (frames no longer traced).
     max_queued_frames: int = 3
+    # The feature half's process (features/feature_process.py) runs this much nicer than tracking and the direct
+    # mapper: it is behind neither (tracking waits for the direct reference, the feature map only has to keep up),
+    # so on a busy machine the cores go to them first. 0: the same priority.
+    feature_niceness: int = 10
 
 
 @dataclass

@@ -84,13 +84,13 @@ def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
     )
 
 
-def _feature_half(config: FeatureConfig, camera: PinholeCamera, threaded: bool):
-    """FDMO's feature half: with mapping threads in a process of its own (its Python would hold the GIL the
-    tracking and the direct mapping threads need), else here."""
-    if threaded:
+def _feature_half(config: FeatureConfig, camera: PinholeCamera, process_niceness: int | None):
+    """FDMO's feature half: with mapping threads in a process of its own, ``process_niceness`` nicer (its Python
+    would hold the GIL the tracking and the direct mapping threads need), else (None) here."""
+    if process_niceness is not None:
         from vo_core.features.feature_process import FeatureProcess
 
-        return FeatureProcess(config, camera)
+        return FeatureProcess(config, camera, process_niceness)
     from vo_core.features.feature_odometry import FeatureOdometry
 
     return FeatureOdometry(config, camera)
@@ -114,7 +114,7 @@ class Odometry:
         mapping = config.mapping
         threaded = mapping.threaded and self.front_end is None
         if config.method == "fdmo":
-            self.features = _feature_half(config.features, camera, threaded)
+            self.features = _feature_half(config.features, camera, mapping.feature_niceness if threaded else None)
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
@@ -627,6 +627,7 @@ class Odometry:
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
             return
         converged = [] if direct is None else [a for a in (direct, tracking) if a.converged]
+        converged = [a for a in converged if a is not direct or not self._elsewhere(outcome, direct)]
         if converged:  # the window's points, however weak here, against depths the feature map has not settled
             why = (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or more: too few "
                    "to restart from (the better fit of the two alignments goes on)")
@@ -652,9 +653,21 @@ class Odometry:
             return None
         if self._same_optimum(outcome, direct, retracked):
             return retracked, "both alignments reached the same optimum"
-        if retracked.rmse_after < direct.rmse_after:
-            return None  # the motion model's alignment locked onto a worse optimum
+        if retracked.rmse_after < direct.rmse_after or self._elsewhere(outcome, direct):
+            return None  # the motion model's alignment locked onto a worse optimum, or is at another place
         return direct, "the alignment from the recovered pose fits the images no better than the motion model's"
+
+    def _elsewhere(self, outcome, alignment: DirectTracking) -> bool:
+        """Whether a conclusive recovery puts the camera at another place than ``alignment`` does: the alignment
+        explains almost none of its inliers (``fdmo.elsewhere_share``). Its fit, however good, is then no reason to
+        keep it: where the window does not see the place the camera is at, no alignment fits it well (parking
+        played back 70 frames: the motion model's alignment 10.9 m off at RMSE 12.88, explaining none of the
+        recovery's 340 inliers; the one from the recovered pose 13.22; kept, the frame was 10.9 m off, reported as
+        recovered). Where the motion model's alignment was right and the feature pose off by the map's own error,
+        it explained most of them (teddy, 13 frames missed after the start: 72 %)."""
+        fdmo = self.config.fdmo
+        return (outcome.pose.found_fraction >= fdmo.overrule_share and self.features.explained(
+            outcome.pose, alignment.T_world_cam, outcome.features) < fdmo.elsewhere_share)
 
     def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
         """Whether the alignment from the recovered pose ended where the motion model's did (within

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import functools
 import multiprocessing
+import os
 import signal
 import threading
 from multiprocessing.connection import Connection
@@ -28,11 +29,12 @@ CLOSE_TIMEOUT_S = 10.0  # a call in progress when the run ends finishes first
 
 
 class FeatureProcess:
-    def __init__(self, config: FeatureConfig, camera: PinholeCamera):
+    def __init__(self, config: FeatureConfig, camera: PinholeCamera, niceness: int = 0):
+        """``niceness``: added to the process's (os.nice), so that on a busy machine the cores go to the callers."""
         context = multiprocessing.get_context("spawn")
         self._connection, theirs = context.Pipe()
-        self._process = context.Process(target=_serve, args=(theirs, config, camera), name="fdmo-feature-map",
-                                        daemon=True)
+        self._process = context.Process(target=_serve, args=(theirs, config, camera, niceness),
+                                        name="fdmo-feature-map", daemon=True)
         self._process.start()
         theirs.close()
         self._lock = threading.Lock()  # one call on the pipe at a time, from whichever thread
@@ -83,10 +85,11 @@ class FeatureProcess:
             self._process = None
 
 
-def _serve(connection: Connection, config: FeatureConfig, camera: PinholeCamera) -> None:
+def _serve(connection: Connection, config: FeatureConfig, camera: PinholeCamera, niceness: int) -> None:
     """The process: build the feature half, say whether that worked, then answer calls until told to stop (or
     until the parent is gone). Ctrl-C reaches the whole process group: the parent ends the run, and then this."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.nice(niceness)
     try:
         try:
             odometry = FeatureOdometry(config, camera)
