@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from vo_core.config import load_config
+from vo_core.direct.affine import relative_affine, relative_affines
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.immature_point import host_pattern
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -123,6 +124,16 @@ def test_the_optimization_does_not_depend_on_the_number_of_threads():
         results.append(np.concatenate([np.concatenate([k.T_world_cam.ravel(), k.active_idepth]) for k in keyframes]))
     assert sum(len(k.active_idepth) for k in keyframes) > 2 * POINTS_PER_BLOCK  # several blocks per thread
     np.testing.assert_array_equal(results[0], results[1])
+
+
+def test_the_brightness_transfers_of_all_pairs_at_once_are_each_pairs():
+    """The window's (K, K) affine transfers are relative_affine's, pair by pair, exposure times known or not."""
+    exposures = [0.01, None, 0.02, 0.015]
+    affines = np.array([[0.0, 0.0], [0.1, -3.0], [-0.2, 5.0], [0.05, 1.5]])
+    factor, offset = relative_affines(exposures, affines)
+    for h, t in np.ndindex(factor.shape):
+        expected = relative_affine(exposures[h], exposures[t], affines[h], affines[t])
+        assert (factor[h, t], offset[h, t]) == pytest.approx(expected, rel=1e-15, abs=1e-15)
 
 
 def test_steps_with_a_fixed_scale_keep_the_window_scale():

@@ -25,3 +25,13 @@ def relative_affine(
     with np.errstate(over="ignore"):  # a diverging optimizer may propose huge a: inf is rejected upstream
         factor = exposure_ratio(exposure_from, exposure_to) * float(np.exp(ab_to[0] - ab_from[0]))
     return factor, float(ab_to[1] - factor * ab_from[1])
+
+
+def relative_affines(exposures: list[float | None], affines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``relative_affine`` for every pair of frames at once: (K, K) factors and offsets, indexed [from, to]."""
+    known = np.array([float(e) if e else np.nan for e in exposures])  # unknown: the ratio is 1
+    ratio = np.nan_to_num(known[None, :] / known[:, None], nan=1.0)
+    a, b = affines[:, 0], affines[:, 1]
+    with np.errstate(over="ignore"):
+        factor = ratio * np.exp(a[None, :] - a[:, None])
+    return factor, b[None, :] - factor * b[:, None]

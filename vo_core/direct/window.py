@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from vo_core.direct.affine import relative_affine
+from vo_core.direct.affine import relative_affines
 from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -182,10 +182,7 @@ class WindowOptimizer:
         T_target_host = _relative_poses(np.array(poses))
         T0_target_host = _relative_poses(first_estimates)
         adjoint0 = np.array([se3_adjoint(se3_inverse(T0)) for T0 in first_estimates])
-        factor, offset = np.ones((n_kf, n_kf)), np.zeros((n_kf, n_kf))
-        for h, host in enumerate(keyframes):
-            for t, target in enumerate(keyframes):
-                factor[h, t], offset[h, t] = relative_affine(host.exposure, target.exposure, affines[h], affines[t])
+        factor, offset = relative_affines([k.exposure for k in keyframes], np.array(affines, float))
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
         camera = keyframes[0].camera
         with _PARALLEL_KERNEL:
