@@ -3,6 +3,10 @@ here does, its errors are raised here, and a closed or dead process says so inst
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+
 import numpy as np
 import pytest
 
@@ -84,3 +88,15 @@ def test_a_closed_or_dead_process_says_so():
     with pytest.raises(RuntimeError, match="ended unexpectedly"):
         dead.points_world()
     dead.close()
+
+
+def test_ctrl_c_to_the_process_group_is_left_to_the_parent():
+    """Ctrl-C in a terminal signals the whole group; the parent ends the run and then closes the process, which must
+    still answer meanwhile, even when the signal came while it was starting (importing)."""
+    starting = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    os.kill(starting._process.pid, signal.SIGINT)
+    time.sleep(0.5)
+    assert starting.empty
+    os.kill(starting._process.pid, signal.SIGINT)
+    assert starting.newest_keyframe is None
+    starting.close()

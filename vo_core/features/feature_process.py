@@ -35,7 +35,13 @@ class FeatureProcess:
         self._connection, theirs = context.Pipe()
         self._process = context.Process(target=_serve, args=(theirs, config, camera, niceness),
                                         name="fdmo-feature-map", daemon=True)
-        self._process.start()
+        # Ctrl-C reaches the whole process group: the parent ends the run, and then this process. Blocked while it
+        # starts, SIGINT stays blocked there from its first instruction (its imports included).
+        unblocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            self._process.start()
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, unblocked)
         theirs.close()
         self._lock = threading.Lock()  # one call on the pipe at a time, from whichever thread
         self._ready = False  # the process answered that its FeatureOdometry is built
@@ -87,8 +93,7 @@ class FeatureProcess:
 
 def _serve(connection: Connection, config: FeatureConfig, camera: PinholeCamera, niceness: int) -> None:
     """The process: build the feature half, say whether that worked, then answer calls until told to stop (or
-    until the parent is gone). Ctrl-C reaches the whole process group: the parent ends the run, and then this."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    until the parent is gone)."""
     os.nice(niceness)
     try:
         try:
