@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import threading
 import time
 
 import numpy as np
@@ -90,10 +91,18 @@ def test_a_closed_or_dead_process_says_so():
     dead.close()
 
 
-def test_ctrl_c_to_the_process_group_is_left_to_the_parent():
+@pytest.mark.parametrize("started_on", ["the main thread", "another thread"])
+def test_ctrl_c_to_the_process_group_is_left_to_the_parent(started_on):
     """Ctrl-C in a terminal signals the whole group; the parent ends the run and then closes the process, which must
     still answer meanwhile, even when the signal came while it was starting (importing)."""
-    starting = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    if started_on == "the main thread":
+        starting = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    else:
+        started = []
+        thread = threading.Thread(target=lambda: started.append(FeatureProcess(FeatureConfig(), SEQUENCE.camera)))
+        thread.start()
+        thread.join()
+        starting = started[0]
     os.kill(starting._process.pid, signal.SIGINT)
     time.sleep(0.5)
     assert starting.empty

@@ -35,13 +35,7 @@ class FeatureProcess:
         self._connection, theirs = context.Pipe()
         self._process = context.Process(target=_serve, args=(theirs, config, camera, niceness),
                                         name="fdmo-feature-map", daemon=True)
-        # Ctrl-C reaches the whole process group: the parent ends the run, and then this process. Blocked while it
-        # starts, SIGINT stays blocked there from its first instruction (its imports included).
-        unblocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-        try:
-            self._process.start()
-        finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, unblocked)
+        _start_deaf_to_ctrl_c(self._process)
         theirs.close()
         self._lock = threading.Lock()  # one call on the pipe at a time, from whichever thread
         self._ready = False  # the process answered that its FeatureOdometry is built
@@ -89,6 +83,26 @@ class FeatureProcess:
                 self._process.join()
             self._connection.close()
             self._process = None
+
+
+def _start_deaf_to_ctrl_c(process) -> None:
+    """Ctrl-C reaches the whole process group: the parent ends the run, and then the process it started. So the
+    process must not hear it from its first instruction on (its imports included; one that came then killed it, and
+    the run failed at its next feature call instead of ending with complete files). An ignored signal stays ignored
+    across exec, and Python then installs no KeyboardInterrupt for it; only the main thread may change that, and
+    elsewhere a signal blocked in the starting thread stays blocked in the process."""
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            process.start()
+        finally:
+            signal.signal(signal.SIGINT, handler)
+        return
+    unblocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        process.start()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, unblocked)
 
 
 def _serve(connection: Connection, config: FeatureConfig, camera: PinholeCamera, niceness: int) -> None:
