@@ -80,8 +80,12 @@ class MappingThread:
         with self._condition:
             return self._keyframe_queued()
 
-    def _keyframe_queued(self) -> bool:
-        return (self._running is not None and self._running.keyframe) or any(q.keyframe for q in self._queue)
+    def _keyframe_queued(self, until_released: bool = False) -> bool:
+        """Whether a keyframe is queued or being mapped; ``until_released``: or being mapped and its tracking reference
+        not out yet."""
+        running = self._running
+        mapping = running is not None and running.keyframe and not (until_released and running.released)
+        return mapping or any(q.keyframe for q in self._queue)
 
     def submit(self, frame_index: int, timestamp: float, job: Job, keyframe: bool = False,
                may_skip: bool = False) -> None:
@@ -102,8 +106,7 @@ class MappingThread:
     def wait_reference(self) -> None:
         """Until the pending keyframe's tracking reference is published; the mapper may still be mapping the rest of
         it (marginalization, new immature points) while the next frame is tracked."""
-        self._wait(lambda: not any(q.keyframe for q in self._queue)
-                   and (self._running is None or not self._running.keyframe or self._running.released))
+        self._wait(lambda: not self._keyframe_queued(until_released=True))
 
     def release_tracking(self) -> None:
         """The running keyframe's tracking reference is published (DSO too hands its tracker the new keyframe right

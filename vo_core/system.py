@@ -606,10 +606,13 @@ class Odometry:
         start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
         map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
         T_world_cam, refined = outcome.T_world_cam, False
+        # Whether the recovery puts the camera elsewhere than the motion model's alignment: asked once, for both the
+        # window going on with that alignment and the fallback below.
+        direct_elsewhere = direct is not None and direct.converged and self._elsewhere(outcome, direct)
         if direct is not None:
             tracking = self.direct.track(frame, T_world_cam)
             result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
-            resumed = self._resumed_alignment(outcome, direct, tracking)
+            resumed = self._resumed_alignment(outcome, direct, tracking, direct_elsewhere)
             if resumed is not None:
                 self._resume_window(frame, outcome, direct, tracking, *resumed, result)
                 return
@@ -626,8 +629,8 @@ class Odometry:
             self.mode = _Mode.DIRECT
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
             return
-        converged = [] if direct is None else [a for a in (direct, tracking) if a.converged]
-        converged = [a for a in converged if a is not direct or not self._elsewhere(outcome, direct)]
+        converged = [] if direct is None else [
+            a for a in (direct, tracking) if a.converged and not (a is direct and direct_elsewhere)]
         if converged:  # the window's points, however weak here, against depths the feature map has not settled
             why = (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or more: too few "
                    "to restart from (the better fit of the two alignments goes on)")
@@ -646,14 +649,15 @@ class Odometry:
                **_alignment_fits(direct, retracked)})
         self._accept(frame, alignment, result)
 
-    def _resumed_alignment(self, outcome, direct: DirectTracking,
-                           retracked: DirectTracking) -> tuple[DirectTracking, str] | None:
-        """The alignment the same window goes on with after a recovery, and why; None where the map restarts."""
+    def _resumed_alignment(self, outcome, direct: DirectTracking, retracked: DirectTracking,
+                           direct_elsewhere: bool) -> tuple[DirectTracking, str] | None:
+        """The alignment the same window goes on with after a recovery, and why; None where the map restarts.
+        ``direct_elsewhere``: the recovery puts the camera elsewhere than the motion model's alignment does."""
         if not (direct.converged and retracked.converged):
             return None
         if self._same_optimum(outcome, direct, retracked):
             return retracked, "both alignments reached the same optimum"
-        if retracked.rmse_after < direct.rmse_after or self._elsewhere(outcome, direct):
+        if retracked.rmse_after < direct.rmse_after or direct_elsewhere:
             return None  # the motion model's alignment locked onto a worse optimum, or is at another place
         return direct, "the alignment from the recovered pose fits the images no better than the motion model's"
 

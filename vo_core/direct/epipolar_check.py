@@ -129,4 +129,3 @@ def _matches(first: Features, second: Features, config: EpipolarCheckConfig) -> 
         return np.zeros((0, 2)), np.zeros((0, 2))
     index = np.array(kept)
     return first.uv[index[:, 0]], second.uv[index[:, 1]]
-
