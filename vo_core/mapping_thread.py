@@ -10,11 +10,13 @@ GIL (numba ``nogil``, OpenCV), so the threads overlap where the work is in them;
 Two modes (``mapping.wait_for_keyframes``):
 - offline (DSO's linearizeOperation, but with the feature mapping and the tracing beside tracking): no frame is
   tracked before the pending keyframe's new reference is out (``wait_reference``: right after the window
-  optimization) nor accepted before that keyframe is mapped whole, and every frame is traced, so both maps are the
-  synchronous run's and so are the poses (but a keyframe's own: its result goes out with the tracked pose, before
-  the window optimization refines it); what runs beside tracking is the tracing of the frames, a keyframe's
-  marginalization and new candidates, and the feature map's growth at each keyframe (a job of its own, carried out
-  by the feature half's process);
+  optimization), every frame is traced, and the jobs run in the order they came (a frame's tracing, or the keyframe
+  it asks for, after the keyframe before it is mapped whole), so both maps are the synchronous run's and so are the
+  poses (but a keyframe's own: its result goes out with the tracked pose, before the window optimization refines
+  it); what runs beside tracking is the tracing of the frames, a keyframe's marginalization and new candidates
+  (while the next frames are tracked and accepted: what accepting reads, the frame's own tracking and the motion
+  model, the mapper does not change after the reference is out), and the feature map's growth at each keyframe (a
+  job of its own, carried out by the feature half's process);
 - live (DSO's real-time mode): tracking never waits for a keyframe; while one is pending no other is asked for (a
   later frame becomes the keyframe once the mapper is free), and when frames queue up the mapper catches up (DSO's
   needToKetchupMapping): a frame that is not a keyframe is no longer traced while more than ``max_queued_frames``
@@ -98,10 +100,6 @@ class MappingThread:
     def wait_idle(self) -> None:
         """Until every queued job is done: the maps are then the tracking thread's to change."""
         self._wait(lambda: not self._queue and self._running is None)
-
-    def wait_keyframe(self) -> None:
-        """Until the pending keyframe is mapped and its reference published."""
-        self._wait(lambda: not self._keyframe_queued())
 
     def wait_reference(self) -> None:
         """Until the pending keyframe's tracking reference is published; the mapper may still be mapping the rest of

@@ -320,10 +320,11 @@ class Odometry:
         if self.mapper is None or inline:
             self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
             return
-        if self.config.mapping.wait_for_keyframes:
-            self.mapper.wait_keyframe()  # the last keyframe is mapped whole before the next is asked for
+        # Offline the frame is accepted while the last keyframe is still being mapped: its tracing, or the keyframe it
+        # asks for, waits behind that one in the mapper's queue. Live, no keyframe is asked for while one is pending.
         self.direct.commit(frame, tracking, result)
-        make_keyframe = self.direct.wants_keyframe(frame, tracking) and not self.mapper.keyframe_pending
+        make_keyframe = self.direct.wants_keyframe(frame, tracking) and not (
+            self._live_mapping and self.mapper.keyframe_pending)
         result.is_keyframe = make_keyframe
 
         def map_direct(mapped: FrameResult) -> MapSnapshot | None:
