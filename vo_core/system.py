@@ -148,7 +148,8 @@ class Odometry:
         for snapshot in snapshots:
             self.bus.map(snapshot)
         if result.is_keyframe and result.frame_index != self.queued_frame:  # a keyframe mapped here, at once
-            self.bus.map(self._snapshot())
+            self.bus.map(self._snapshot() if self.mapper is None else self._with_mapped_features(
+                self.direct.map_snapshot()))
         return result
 
     def _deliver_mapped(self, result: FrameResult | None) -> list[MapSnapshot]:
@@ -176,9 +177,15 @@ class Odometry:
                 result.mean_inverse_depth = mapped.result.mean_inverse_depth
         if not maps_changed or "direct" not in self.snapshots:
             return []
+        return [self._with_mapped_features(self.snapshots["direct"])]
+
+    def _with_mapped_features(self, direct: MapSnapshot) -> MapSnapshot:
+        """With mapping threads: the direct map with the feature map as its mapper last reported it (the feature
+        half's process is not asked: it may still be mapping, or starting)."""
+        self.snapshots["direct"] = direct
         features = self.snapshots.get("features", MapSnapshot())
-        return [dataclasses.replace(self.snapshots["direct"], feature_points_world=features.feature_points_world,
-                                    feature_keyframe_poses=features.feature_keyframe_poses)]
+        return dataclasses.replace(direct, feature_points_world=features.feature_points_world,
+                                   feature_keyframe_poses=features.feature_keyframe_poses)
 
     def report(self, event: Event) -> None:
         """Tell the sinks about something that happened outside the odometry (a frame the loader skipped,
@@ -368,7 +375,7 @@ class Odometry:
             self._track_old_window(frame, result)
             if result.T_world_cam is not None:
                 return
-        elif self.features is not None and not self.features.empty:
+        elif self.features is not None and not self._feature_map_empty:
             outcome = self.features.recover(frame.frame.image, self.features.newest_keyframe,
                                             self._predicted_pose(frame))
             result.timings_ms["recovery"] = outcome.ms
@@ -378,11 +385,17 @@ class Odometry:
                 return
         outcome = self.direct.initialize(frame, result)
         if outcome is not None and self.features is not None:
-            if not self.features.empty:
+            if not self._feature_map_empty:
                 self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
                 self.feature_keyframes_given.clear()
                 self.posed = []
             self._map_features(result, initialization=outcome)
+
+    @property
+    def _feature_map_empty(self) -> bool:
+        """Whether the feature map has no keyframe: asked of it only where it was given some since its last reset (so
+        that the first frames need not wait for the feature half's process to start)."""
+        return not self.feature_keyframes_given or self.features.empty
 
     def _track_old_window(self, frame: DirectFrame, result: FrameResult) -> None:
         """A frame while a new map initializes: the old window is tracked and recovered from as before the
@@ -776,9 +789,11 @@ class Odometry:
     def _map_features(self, result: FrameResult, initialization=None) -> None:
         """Every direct keyframe the feature map does not have yet becomes a feature keyframe (at initialization
         both of the initializer's keyframes, and the initializer's feature tracks their first points), at its
-        direct pose. Live, on the feature mapping thread: the start and a restart made them here, and the frames
-        that came meanwhile were missed (two feature keyframes at the start: 41-57 ms of teddy's)."""
-        if self.feature_mapper is not None and self._live_mapping:
+        direct pose. With mapping threads, on the feature mapping thread: live, the start and a restart made them
+        here, and the frames that came meanwhile were missed (two feature keyframes at the start: 41-57 ms of
+        teddy's); offline the tracking thread waited for them (the feature map grows in the same order either way,
+        and whatever reads it waits for the feature mapper first)."""
+        if self.feature_mapper is not None:
             self._submit_feature_keyframes(result.frame_index, result.timestamp, initialization)
             return
         self._add_feature_keyframes(*self._new_feature_keyframes(), result, initialization)

@@ -20,7 +20,7 @@ too few matches, a planar view) the check says nothing.
 from __future__ import annotations
 
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -59,19 +59,41 @@ class PairGeometry:
                 "homography_ratio": round(self.homography_ratio, 2)}
 
 
+@dataclass
+class _ImageGeometry:
+    """What a pair's images alone say (the direct poses aside, which the window optimizations go on refining)."""
+
+    points: int
+    parallax_deg: float
+    T_anchor_other: np.ndarray  # the essential matrix's motion, translation of unit length
+    homography_ratio: float
+
+
 class EpipolarCheck:
     def __init__(self, config: EpipolarCheckConfig):
         self.config = config
+        self._pool: ThreadPoolExecutor | None = None
+        self._anchor: tuple[int, Future] | None = None  # the anchor's frame index and its features
+        self._images: dict[tuple[int, int], Future] = {}  # (anchor, other) frame indices: _ImageGeometry or None
+
+    def prepare(self, keyframes: list, camera: PinholeCamera) -> None:
+        """Start measuring, beside mapping, what the images of the keyframe pairs not measured yet say: at the last
+        optimization of the start only the comparison with the direct poses is left (teddy's start: 0.5 s of
+        extraction, matching and RANSAC that held up its last probation keyframe)."""
+        for other in keyframes[1:]:
+            self._images_of(keyframes[0], other, camera)
 
     def disagreement(self, keyframes: list, camera: PinholeCamera) -> tuple[str | None, dict]:
         """Why the direct poses of ``keyframes`` (each with ``frame_index``, ``image``, ``T_world_cam``) contradict
         the epipolar geometry of their images, or None; and the measures for the event. The pairs are measured on
-        all cores (OpenCV's work in them releases the GIL: KITTI's start, 1.1 s in a row)."""
+        all cores (OpenCV's work in them releases the GIL: KITTI's start, 1.1 s in a row), those ``prepare`` did
+        not start yet included."""
         config = self.config
         anchor, others = keyframes[0], keyframes[1:]
-        anchor_features = self._extractor().extract(anchor.image)
-        with ThreadPoolExecutor(max_workers=os.cpu_count(), thread_name_prefix="fdmo-epipolar") as pool:
-            pairs = list(pool.map(lambda other: self._pair(anchor, anchor_features, other, camera), others))
+        measured = [self._images_of(anchor, other, camera) for other in others]
+        pairs = [_pair_geometry(anchor, other, images.result()) for other, images in zip(others, measured)]
+        self._pool.shutdown(wait=False)  # its threads end once idle
+        self._pool = None
         qualified = [pair for pair in pairs if pair is not None and pair.qualified(config)]
         disagreeing = [pair for pair in qualified if pair.disagrees(config)]
         details = {"epipolar_pairs": len(qualified), "epipolar_disagreeing": len(disagreeing)}
@@ -87,13 +109,25 @@ class EpipolarCheck:
                   f"translation direction {worst.direction_deg:.0f} deg apart)")
         return reason, details
 
+    def _images_of(self, anchor, other, camera: PinholeCamera) -> Future:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=os.cpu_count(), thread_name_prefix="fdmo-epipolar")
+        if self._anchor is None or self._anchor[0] != anchor.frame_index:
+            self._anchor = (anchor.frame_index, self._pool.submit(self._extractor().extract, anchor.image))
+        key = (anchor.frame_index, other.frame_index)
+        if key not in self._images:
+            self._images[key] = self._pool.submit(self._measure_images, self._anchor[1], other.image, camera)
+        return self._images[key]
+
     def _extractor(self) -> OrbExtractor:
-        """One per pair: OpenCV's detectors are not shared between threads."""
+        """One per image: OpenCV's detectors are not shared between threads."""
         return OrbExtractor(OrbConfig(num_features=self.config.num_features))
 
-    def _pair(self, anchor, anchor_features: Features, other, camera: PinholeCamera) -> PairGeometry | None:
+    def _measure_images(self, anchor_features: Future, other_image: np.ndarray,
+                        camera: PinholeCamera) -> _ImageGeometry | None:
         config = self.config
-        uv_anchor, uv_other = _matches(anchor_features, self._extractor().extract(other.image), config)
+        other_features = self._extractor().extract(other_image)
+        uv_anchor, uv_other = _matches(anchor_features.result(), other_features, config)
         if len(uv_anchor) < config.min_points:
             return None
         cv2.setRNGSeed(config.seed)  # this thread's RANSAC draws: each pair's the same, whichever thread measures it
@@ -107,15 +141,19 @@ class EpipolarCheck:
             return None
         T_anchor_other = motion.T_first_second
         rays = bearing_angles(camera, np.eye(4), uv_anchor[in_front], T_anchor_other, uv_other[in_front])
-        parallax = float(np.degrees(np.median(rays)))
-        T_direct = se3_inverse(anchor.T_world_cam) @ other.T_world_cam
-        return PairGeometry(
-            (anchor.frame_index, other.frame_index), int(in_front.sum()), parallax,
-            *motion_angles_deg(T_anchor_other, T_direct),
-            estimate_models(uv_anchor[in_front], uv_other[in_front], TwoViewConfig(),
-                            np.random.default_rng(config.seed)).ratio,
-        )
+        homography_ratio = estimate_models(uv_anchor[in_front], uv_other[in_front], TwoViewConfig(),
+                                           np.random.default_rng(config.seed)).ratio
+        return _ImageGeometry(int(in_front.sum()), float(np.degrees(np.median(rays))), T_anchor_other,
+                              homography_ratio)
 
+
+def _pair_geometry(anchor, other, images: _ImageGeometry | None) -> PairGeometry | None:
+    """The pair's images against its keyframes' direct poses as they are now."""
+    if images is None:
+        return None
+    T_direct = se3_inverse(anchor.T_world_cam) @ other.T_world_cam
+    return PairGeometry((anchor.frame_index, other.frame_index), images.points, images.parallax_deg,
+                        *motion_angles_deg(images.T_anchor_other, T_direct), images.homography_ratio)
 
 
 def _matches(first: Features, second: Features, config: EpipolarCheckConfig) -> tuple[np.ndarray, np.ndarray]:

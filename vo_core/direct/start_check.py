@@ -44,6 +44,11 @@ class StartCheck:
     measures: dict = field(default_factory=dict)  # for the event: the latest energy and inliers, the worst change
     posed_timestamps: list[float] = field(default_factory=list)  # the frames posed in this start's map so far
     witness: Future | None = None  # the epipolar witness running beside mapping: (reason or None, measures)
+    epipolar: EpipolarCheck | None = field(default=None, init=False, repr=False)  # measures images as they come
+
+    def __post_init__(self):
+        if self.config.epipolar.enabled:
+            self.epipolar = EpipolarCheck(self.config.epipolar)
 
     @property
     def passed(self) -> bool:
@@ -63,6 +68,8 @@ class StartCheck:
     def observe(self, report: WindowReport, keyframes: list) -> str | None:
         """One window optimization's outcome; returns why the start fails, or None."""
         parallax = self._parallax(keyframes)
+        if self.epipolar is not None and self.witness is None:
+            self.epipolar.prepare(keyframes, keyframes[0].camera)
         if self.handover_parallax is None:
             self.handover_parallax = parallax
             return None
@@ -85,15 +92,15 @@ class StartCheck:
             return f"the energy per residual grew {growth:.1f}x during the first window optimizations"
         if inliers < config.min_inlier_ratio:
             return f"inlier ratio {inliers:.2f} below {config.min_inlier_ratio}"
-        if not config.epipolar.enabled:
+        if self.epipolar is None:
             return None
         if config.epipolar.beside_mapping:
             executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-start-witness")
-            self.witness = executor.submit(EpipolarCheck(config.epipolar).disagreement,
-                                           [_KeyframeView(k) for k in keyframes], keyframes[0].camera)
+            self.witness = executor.submit(self.epipolar.disagreement, [_KeyframeView(k) for k in keyframes],
+                                           keyframes[0].camera)
             executor.shutdown(wait=False)  # its thread ends with the witness
             return None
-        reason, measures = EpipolarCheck(config.epipolar).disagreement(keyframes, keyframes[0].camera)
+        reason, measures = self.epipolar.disagreement(keyframes, keyframes[0].camera)
         self.measures.update(measures)
         return reason
 
