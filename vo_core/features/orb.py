@@ -127,10 +127,8 @@ class OrbExtractor:
         self.quota = features_per_level(config)
         self.scales = level_scales(config)
         self.border = config.edge_threshold - BORDER_BELOW_EDGE_THRESHOLD
-        self._fast_strong, self._fast_weak = (
-            cv2.FastFeatureDetector_create(threshold, nonmaxSuppression=True, type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16)
-            for threshold in (config.fast_threshold, config.min_fast_threshold)
-        )
+        self._fast = cv2.FastFeatureDetector_create(config.min_fast_threshold, nonmaxSuppression=True,
+                                                    type=cv2.FAST_FEATURE_DETECTOR_TYPE_9_16)
         # OpenCV computes the descriptors on its own pyramid of the same sizes (cvRound(size / s^l)), blurred
         # as ORB-SLAM2 does; its edge threshold only drops keypoints closer to the border than ours are.
         self._orb = cv2.ORB_create(
@@ -195,23 +193,27 @@ class OrbExtractor:
         if self.quota[level] <= 0 or hi_x <= lo or hi_y <= lo:
             return np.zeros((0, 2), int), np.zeros(0, np.float32)
         bounds = (lo, hi_x, hi_y)
-        xy, response = self._fast_corners(self._fast_strong, image, bounds, mask, self.scales[level])
+        # One detection at minThFAST: a FAST response is the highest threshold at which the pixel is a corner, so
+        # the iniThFAST corners are those responding at least that much (the same corners, non-maximum suppression
+        # included: a weaker neighbour never suppresses a stronger corner), in the same raster order.
+        all_xy, all_response = self._fast_corners(image, bounds, mask, self.scales[level])
+        strong = all_response >= self.config.fast_threshold
+        xy, response = all_xy[strong], all_response[strong]
         cell_of, cells = self._cell_grid(bounds)
         has_strong = np.zeros(cells, dtype=bool)
         has_strong[cell_of(xy)] = True
         if not has_strong.all():  # ORB-SLAM2: minThFAST in the cells where iniThFAST found nothing
-            weak_xy, weak_response = self._fast_corners(self._fast_weak, image, bounds, mask, self.scales[level])
-            fallback = ~has_strong[cell_of(weak_xy)]
-            xy = np.concatenate([xy, weak_xy[fallback]])
-            response = np.concatenate([response, weak_response[fallback]])
+            fallback = ~has_strong[cell_of(all_xy)]
+            xy = np.concatenate([xy, all_xy[fallback]])
+            response = np.concatenate([response, all_response[fallback]])
         keep = distribute_quadtree(xy, response, (lo, lo, hi_x, hi_y), int(self.quota[level]))
         return xy[keep], response[keep]
 
     def _fast_corners(
-        self, detector, image: np.ndarray, bounds: tuple[int, int, int], mask: np.ndarray | None, scale: float
+        self, image: np.ndarray, bounds: tuple[int, int, int], mask: np.ndarray | None, scale: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """FAST corners within ``bounds`` (lo, hi_x, hi_y) and on allowed mask pixels: (xy (n, 2), response)."""
-        keypoints = detector.detect(image)
+        keypoints = self._fast.detect(image)
         if not keypoints:
             return np.zeros((0, 2), int), np.zeros(0, np.float32)
         xy = np.rint(cv2.KeyPoint_convert(keypoints)).astype(int)  # FAST corners are on integer pixels
