@@ -136,6 +136,21 @@ def test_keyframes_mapped_on_the_thread_reach_the_sinks_from_the_tracking_thread
         e.frame_index for e in added}
 
 
+def test_threaded_mapping_switches_threads_more_often_while_it_runs():
+    """Python's 5 ms switch interval made tracking wait for the mapper's Python each time it came back from a kernel;
+    the run's own interval holds while it runs, and Python's comes back at its end."""
+    import sys
+
+    from vo_core.config import load_config
+    from vo_core.system import Odometry
+
+    before = sys.getswitchinterval()
+    odometry = Odometry(load_config(overrides=[*THREADED, "mapping.switch_interval_s=0.0003"]), SMOOTH.camera)
+    during = sys.getswitchinterval()
+    odometry.close()
+    assert during == pytest.approx(0.0003) and sys.getswitchinterval() == before
+
+
 def test_stopping_mid_run_maps_what_was_queued_and_joins_the_thread():
     from vo_core.config import load_config
     from vo_core.system import Odometry

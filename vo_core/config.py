@@ -108,6 +108,10 @@ class MappingConfig:
     # mapper: it is behind neither (tracking waits for the direct reference, the feature map only has to keep up),
     # so on a busy machine the cores go to them first. 0: the same priority.
     feature_niceness: int = 10
+    # How often Python lets another thread take the interpreter lock (sys.setswitchinterval) while mapping threads
+    # run; Python's own 5 ms made tracking wait up to 5 ms each time it came back from a compiled kernel while the
+    # mapper ran Python (tracking does that a dozen times a frame). Measured in BENCHMARKS.md (Real time).
+    switch_interval_s: float = 0.0002
 
 
 @dataclass

@@ -31,6 +31,7 @@ its own. Every other branch of the flowchart waits for both first and then runs 
 from __future__ import annotations
 
 import dataclasses
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -118,8 +119,10 @@ class Odometry:
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
+        self.switch_interval_before = sys.getswitchinterval()  # Python's, given back at close
         if self.mapper is not None:
             self.direct.reference_published = self.mapper.release_tracking
+            sys.setswitchinterval(mapping.switch_interval_s)
         # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
         # its feature mapping in a thread of its own too); the thread waits while the feature half's process maps.
         has_features = self.features is not None
@@ -222,6 +225,7 @@ class Odometry:
             self.mapper.close()
             if self.feature_mapper is not None:
                 self.feature_mapper.close()
+            sys.setswitchinterval(self.switch_interval_before)
         if self.features is not None:
             self.features.close()
         self.bus.close()

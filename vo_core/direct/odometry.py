@@ -263,7 +263,8 @@ class DirectOdometry:
     # ------------------------------------------------------------------------------------ steps
 
     def prepare(self, frame) -> DirectFrame:
-        """The frame's image pyramid (of the photometrically corrected image where there is one)."""
+        """The frame's image pyramid (of the photometrically corrected image where there is one), packed: with a
+        mapping thread this runs while the mapper may still be making the reference the frame is tracked against."""
         irradiance = getattr(frame, "irradiance", None)
         image = irradiance if irradiance is not None else frame.image
         if image.shape[:2] != (self.camera.height, self.camera.width):
@@ -271,7 +272,7 @@ class DirectOdometry:
                 f"frame {frame.index}: image is {image.shape[1]}x{image.shape[0]}, "
                 f"the camera is {self.camera.width}x{self.camera.height}"
             )
-        return DirectFrame(frame, ImagePyramid(image, self.camera, self.config.pyramid))
+        return DirectFrame(frame, ImagePyramid(image, self.camera, self.config.pyramid).pack())
 
     def initialize(self, frame: DirectFrame, result: FrameResult) -> InitializationResult | None:
         """Feed the initializer; when it succeeds, the first two keyframes are made (the frame gets its pose)

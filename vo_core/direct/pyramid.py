@@ -32,6 +32,10 @@ class PyramidLevel:
     @property
     def packed(self) -> np.ndarray:
         """(h, w, 3) float32: intensity, d/du, d/dv; made again if it was released."""
+        return self.pack()
+
+    def pack(self) -> np.ndarray:
+        """The packed image, made now if it is not there (read once: the mapper may release it meanwhile)."""
         packed = self._packed
         if packed is None:
             packed = self._packed = _packed(self.intensity)
@@ -138,6 +142,12 @@ class ImagePyramid:
 
     def __len__(self) -> int:
         return len(self.levels)
+
+    def pack(self) -> "ImagePyramid":
+        """Make every level's packed image now (tracking reads them all)."""
+        for level in self.levels:
+            level.pack()
+        return self
 
     def release_packed(self) -> None:
         for level in self.levels:
