@@ -18,7 +18,7 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
-from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, epipolar_search
+from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
@@ -116,177 +116,163 @@ class ImmaturePoints:
         K = camera.K
         KRKi = K @ T_frame_host[:3, :3] @ np.linalg.inv(K)
         Kt = K @ T_frame_host[:3, 3]
-        width, height, border = camera.width, camera.height, config.border
-        max_search = (width + height) * config.max_pixel_search
+        pr = np.column_stack([self.uv[todo], np.ones(len(todo))]) @ KRKi.T
+        rotated = PATTERN @ KRKi[:2, :2].T  # the pattern turned by the in-plane part of the warp (rotatetPattern)
+        factor, offset = affine
+        _trace_points(
+            todo, pr, Kt, rotated, frame.intensity, frame.packed, float(factor), float(offset), self.color,
+            self.weight, self.grad_h, self.energy_threshold, self.idepth_min, self.idepth_max, self.quality,
+            self.status, self.pixel_interval, self.last_uv, camera.width, camera.height, config.border,
+            (camera.width + camera.height) * config.max_pixel_search, config.min_scale_change, config.max_scale_change,
+            config.trace_slack_interval, config.trace_stepsize, config.trace_min_improvement, config.max_steps,
+            config.huber_threshold, MISSING_ENERGY, config.min_trace_test_radius, config.trace_gn_iterations,
+            config.trace_gn_threshold, config.trace_extra_slack,
+        )
 
-        def inside(u, v):
-            return (u > border) & (v > border) & (u < width - 1 - border) & (v < height - 1 - border)
 
-        def fail(index, status):
-            self.status[index] = status
-            self.last_uv[index] = -1.0
-            self.pixel_interval[index] = 0.0
-
-        uv = self.uv[todo]
-        pr = np.column_stack([uv, np.ones(len(todo))]) @ KRKi.T
-        id_min, id_max = self.idepth_min[todo], self.idepth_max[todo]
-        p_min = pr + id_min[:, None] * Kt
-        u_min, v_min = p_min[:, 0] / p_min[:, 2], p_min[:, 1] / p_min[:, 2]
-        bounded = np.isfinite(id_max)
-        p_max = pr + np.where(bounded, id_max, 0.01)[:, None] * Kt  # unbounded: any depth gives the direction
-        u_max, v_max = p_max[:, 0] / p_max[:, 2], p_max[:, 1] / p_max[:, 2]
+# The trace of one host's points, one compiled loop (each point's traceOn in turn): in numpy, the thirty array
+# operations around the searches cost a third of the tracing, seven hosts a frame. Division by zero gives inf or NaN,
+# as numpy's does (error_model), which the tests below turn into a status.
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _trace_points(todo, pr, Kt, rotated, intensity, packed, factor, offset, color, weight, grad_h, energy_threshold,
+                  idepth_min, idepth_max, quality, status, pixel_interval, last_uv, width, height, border, max_search,
+                  min_scale_change, max_scale_change, slack_interval, stepsize, min_improvement, max_steps, huber,
+                  missing_energy, test_radius, gn_iterations, gn_threshold, extra_slack):
+    """For each point ``todo[j]`` (``pr[j]``: K R K^-1 of its host pixel, Kt: K t): project its inverse-depth
+    interval, then, unless the projection leaves the image or the depth ratio [min, max]_scale_change (OOB), the
+    interval is already below ``slack_interval`` px (SKIPPED) or the epipolar line runs along the gradient
+    (BAD_CONDITION; both keep the projected interval's midpoint), search the segment (``search_line``), refine
+    along it (``_refine_on_line``) and shrink the interval to the pixel error bound of the result (GOOD), or mark the
+    point OUTLIER (OOB when it already was one). An unbounded interval is searched ``max_search`` px from its
+    projection at infinity."""
+    energies = np.empty(max_steps)
+    for j in range(len(todo)):
+        i = todo[j]
+        id_min = idepth_min[i]
+        z_min = pr[j, 2] + id_min * Kt[2]
+        u_min = (pr[j, 0] + id_min * Kt[0]) / z_min
+        v_min = (pr[j, 1] + id_min * Kt[1]) / z_min
+        bounded = np.isfinite(idepth_max[i])
+        far = idepth_max[i] if bounded else 0.01  # unbounded: any depth gives the direction
+        z_max = pr[j, 2] + far * Kt[2]
+        u_max = (pr[j, 0] + far * Kt[0]) / z_max
+        v_max = (pr[j, 1] + far * Kt[1]) / z_max
         dist = np.hypot(u_max - u_min, v_max - v_min)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # Unbounded interval: search max_search pixels from the projection at infinity.
-            u_max = np.where(bounded, u_max, u_min + max_search * (u_max - u_min) / dist)
-            v_max = np.where(bounded, v_max, v_min + max_search * (v_max - v_min) / dist)
-        dist = np.where(bounded, dist, max_search)
-        scale_ok = (id_min < 0) | ((p_min[:, 2] > config.min_scale_change) & (p_min[:, 2] < config.max_scale_change))
-        oob = ~inside(u_min, v_min) | ~inside(u_max, v_max) | ~scale_ok | ~np.isfinite(dist)
-        fail(todo[oob], TraceStatus.OOB)
-
-        skipped = ~oob & bounded & (dist < config.trace_slack_interval)
-        self._keep_midpoint(todo[skipped], u_min, v_min, u_max, v_max, dist, skipped, TraceStatus.SKIPPED)
-
+        if not bounded:
+            u_max, v_max = u_min + max_search * (u_max - u_min) / dist, v_min + max_search * (v_max - v_min) / dist
+            dist = max_search
+        scale_ok = id_min < 0 or (z_min > min_scale_change and z_min < max_scale_change)
+        if not (inside(u_min, v_min, width, height, border) and inside(u_max, v_max, width, height, border)
+                and scale_ok and np.isfinite(dist)):
+            _lose(i, TraceStatus.OOB, status, last_uv, pixel_interval)
+            continue
+        if bounded and dist < slack_interval:
+            _keep_midpoint(i, TraceStatus.SKIPPED, u_min, v_min, u_max, v_max, dist, status, last_uv, pixel_interval)
+            continue
         # Error bound in pixels: large when the gradient is parallel to the epipolar line.
-        dx, dy = config.trace_stepsize * (u_max - u_min), config.trace_stepsize * (v_max - v_min)
-        G = self.grad_h[todo]
-        along = G[:, 0, 0] * dx * dx + 2 * G[:, 0, 1] * dx * dy + G[:, 1, 1] * dy * dy
-        across = G[:, 0, 0] * dy * dy - 2 * G[:, 0, 1] * dx * dy + G[:, 1, 1] * dx * dx
-        with np.errstate(divide="ignore", invalid="ignore"):
-            error_px = 0.2 + 0.2 * (along + across) / along
-        bad = ~oob & ~skipped & bounded & ~(error_px * config.trace_min_improvement <= dist)
-        self._keep_midpoint(todo[bad], u_min, v_min, u_max, v_max, dist, bad, TraceStatus.BAD_CONDITION)
-
-        search = ~oob & ~skipped & ~bad
-        if not np.any(search):
-            return
-        s = np.flatnonzero(search)
-        error_px = np.minimum(error_px[s], 10.0)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dx, dy = dx[s] / dist[s], dy[s] / dist[s]
-        length = np.minimum(dist[s], max_search)
-        self._search(todo[s], frame, KRKi, Kt, pr[s], u_min[s], v_min[s], dx, dy, length, error_px, affine, config)
-
-    def _keep_midpoint(self, index, u_min, v_min, u_max, v_max, dist, mask, status) -> None:
-        self.status[index] = status
-        self.last_uv[index] = np.column_stack([u_min[mask] + u_max[mask], v_min[mask] + v_max[mask]]) * 0.5
-        self.pixel_interval[index] = dist[mask]
-
-    def _search(self, index, frame, KRKi, Kt, pr, u_min, v_min, dx, dy, length, error_px, affine, config) -> None:
-        """Discrete search along the segment, quality, Gauss-Newton refinement and the new interval."""
-        num_steps = np.minimum((1.9999 + length / config.trace_stepsize).astype(int), config.max_steps - 1)
-        # The pattern is rotated by the in-plane part of the warp (traceOn's rotatetPattern).
-        rotated = PATTERN @ KRKi[:2, :2].T  # (8, 2)
-        random_shift = u_min * 1000.0 - np.floor(u_min * 1000.0)
-        start_u, start_v = u_min - random_shift * dx, v_min - random_shift * dy
-        best_u, best_v, new_quality = self._discrete_search(
-            frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config
-        )
-        update = (new_quality < self.quality[index]) | (num_steps > 10)
-        self.quality[index] = np.where(update, new_quality, self.quality[index])
-
-        best_u, best_v, best_energy = self._refine(index, frame, best_u, best_v, dx, dy, rotated, affine, config)
-        outlier = ~(best_energy < self.energy_threshold[index] * config.trace_extra_slack)
-        was_outlier = self.status[index] == TraceStatus.OUTLIER
-        self.status[index[outlier]] = np.where(was_outlier[outlier], TraceStatus.OOB, TraceStatus.OUTLIER)
-        self.last_uv[index[outlier]] = -1.0
-        self.pixel_interval[index[outlier]] = 0.0
-
-        # New interval from the pixel error bound, along the dominant image axis of the line.
-        use_u = dx * dx > dy * dy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lo_u, hi_u = best_u - error_px * dx, best_u + error_px * dx
-            lo_v, hi_v = best_v - error_px * dy, best_v + error_px * dy
-            id_lo = np.where(
-                use_u, (pr[:, 2] * lo_u - pr[:, 0]) / (Kt[0] - Kt[2] * lo_u),
-                (pr[:, 2] * lo_v - pr[:, 1]) / (Kt[1] - Kt[2] * lo_v),
-            )
-            id_hi = np.where(
-                use_u, (pr[:, 2] * hi_u - pr[:, 0]) / (Kt[0] - Kt[2] * hi_u),
-                (pr[:, 2] * hi_v - pr[:, 1]) / (Kt[1] - Kt[2] * hi_v),
-            )
-        id_min, id_max = np.minimum(id_lo, id_hi), np.maximum(id_lo, id_hi)
-        invalid = ~outlier & (~np.isfinite(id_min) | ~np.isfinite(id_max) | (id_max < 0))
-        self.status[index[invalid]] = TraceStatus.OUTLIER
-        self.last_uv[index[invalid]] = -1.0
-        self.pixel_interval[index[invalid]] = 0.0
-        good = ~outlier & ~invalid
-        g = index[good]
-        self.idepth_min[g], self.idepth_max[g] = id_min[good], id_max[good]
-        self.status[g] = TraceStatus.GOOD
-        self.pixel_interval[g] = 2.0 * error_px[good]
-        self.last_uv[g] = np.column_stack([best_u[good], best_v[good]])
-
-    def _discrete_search(self, frame, index, start_u, start_v, dx, dy, num_steps, rotated, affine, config):
-        """Pattern energy at 1-px steps along the segment: the best step and the quality of the match."""
-        factor, offset = affine
-        return epipolar_search(
-            frame.intensity, start_u, start_v, dx, dy, num_steps.astype(np.int64), rotated, self.color[index],
-            float(factor), float(offset), float(config.huber_threshold), MISSING_ENERGY,
-            config.min_trace_test_radius,
-        )
-
-    def _refine(self, index, frame, best_u, best_v, dx, dy, rotated, affine, config):
-        """traceOn's Gauss-Newton along the line: steps clamped to 0.5 px, halved back when energy grows."""
-        factor, offset = affine
-        return refine_along_line(
-            frame.packed, best_u, best_v, dx, dy, rotated, self.color[index], self.weight[index] ** 2,
-            float(factor), float(offset), config.huber_threshold, MISSING_ENERGY, config.trace_gn_iterations,
-            config.trace_gn_threshold,
-        )
+        dx, dy = stepsize * (u_max - u_min), stepsize * (v_max - v_min)
+        along = grad_h[i, 0, 0] * dx * dx + 2 * grad_h[i, 0, 1] * dx * dy + grad_h[i, 1, 1] * dy * dy
+        across = grad_h[i, 0, 0] * dy * dy - 2 * grad_h[i, 0, 1] * dx * dy + grad_h[i, 1, 1] * dx * dx
+        error_px = 0.2 + 0.2 * (along + across) / along
+        if bounded and not (error_px * min_improvement <= dist):
+            _keep_midpoint(i, TraceStatus.BAD_CONDITION, u_min, v_min, u_max, v_max, dist, status, last_uv,
+                           pixel_interval)
+            continue
+        error_px = np.minimum(error_px, 10.0)
+        dx, dy = dx / dist, dy / dist
+        num_steps = min(int(1.9999 + min(dist, max_search) / stepsize), max_steps - 1)
+        shift = u_min * 1000.0 - np.floor(u_min * 1000.0)  # traceOn's random shift of the first step
+        best_u, best_v, new_quality = search_line(intensity, u_min - shift * dx, v_min - shift * dy, dx, dy,
+                                                  num_steps, rotated, color[i], factor, offset, huber,
+                                                  missing_energy, test_radius, energies)
+        if new_quality < quality[i] or num_steps > 10:
+            quality[i] = new_quality
+        best_u, best_v, best_energy = _refine_on_line(packed, best_u, best_v, dx, dy, rotated, color[i], weight[i],
+                                                      factor, offset, huber, missing_energy, gn_iterations,
+                                                      gn_threshold)
+        if not best_energy < energy_threshold[i] * extra_slack:
+            _lose(i, TraceStatus.OOB if status[i] == TraceStatus.OUTLIER else TraceStatus.OUTLIER, status, last_uv,
+                  pixel_interval)
+            continue
+        # The new interval from the pixel error bound, along the dominant image axis of the line.
+        if dx * dx > dy * dy:
+            lo, hi = best_u - error_px * dx, best_u + error_px * dx
+            id_lo = (pr[j, 2] * lo - pr[j, 0]) / (Kt[0] - Kt[2] * lo)
+            id_hi = (pr[j, 2] * hi - pr[j, 0]) / (Kt[0] - Kt[2] * hi)
+        else:
+            lo, hi = best_v - error_px * dy, best_v + error_px * dy
+            id_lo = (pr[j, 2] * lo - pr[j, 1]) / (Kt[1] - Kt[2] * lo)
+            id_hi = (pr[j, 2] * hi - pr[j, 1]) / (Kt[1] - Kt[2] * hi)
+        new_min, new_max = np.minimum(id_lo, id_hi), np.maximum(id_lo, id_hi)
+        if not (np.isfinite(new_min) and np.isfinite(new_max)) or new_max < 0:
+            _lose(i, TraceStatus.OUTLIER, status, last_uv, pixel_interval)
+            continue
+        idepth_min[i], idepth_max[i] = new_min, new_max
+        status[i] = TraceStatus.GOOD
+        pixel_interval[i] = 2.0 * error_px
+        last_uv[i, 0], last_uv[i, 1] = best_u, best_v
 
 
 @numba.njit(cache=True, nogil=True)
-def refine_along_line(packed, start_u, start_v, dx, dy, rotated, color, weight_sq, factor, offset, huber,
-                      missing_energy, iterations, threshold):
-    """traceOn's Gauss-Newton refinement of each point's position along its epipolar direction (dx, dy).
+def _lose(i, new_status, status, last_uv, pixel_interval):
+    """The point's trace gave no position."""
+    status[i] = new_status
+    last_uv[i, 0] = last_uv[i, 1] = -1.0
+    pixel_interval[i] = 0.0
 
-    The energy is the pattern's Huber energy with the gradient-dependent weights ``weight_sq``; a pattern
-    pixel outside the image costs ``missing_energy``. A step that lowers the energy is taken (clamped to
-    +-0.5 px, H = 1 + sum w (d r / d step)^2); one that raises it goes back half way from the last good
-    position. A point stops when its last step is below ``threshold``. Returns the positions and energies.
-    One compiled loop per point: in numpy, the few iterations over all points were most of the tracing time.
-    """
-    n = len(start_u)
-    best_u = start_u.copy()
-    best_v = start_v.copy()
-    best_energy = np.full(n, missing_energy)
-    for i in range(n):
-        backup_u, backup_v = best_u[i], best_v[i]
-        step_back = 0.0
-        for _ in range(iterations):
-            energy = 0.0
-            H = 1.0
-            b = 0.0
-            for k in range(rotated.shape[0]):
-                pu = best_u[i] + rotated[k, 0]
-                pv = best_v[i] + rotated[k, 1]
-                if not (pu >= 0.0 and pv >= 0.0 and pu < packed.shape[1] - 1 and pv < packed.shape[0] - 1):
-                    energy += missing_energy
-                    continue
-                intensity, gx, gy = bilinear3(packed, pu, pv)
-                residual = intensity - (factor * color[i, k] + offset)
-                magnitude = abs(residual)
-                w = 1.0 if magnitude <= huber else huber / magnitude
-                energy += weight_sq[i, k] * w * residual * residual * (2.0 - w)
-                d_residual = dx[i] * gx + dy[i] * gy
-                H += w * d_residual * d_residual
-                b += w * residual * d_residual
-            if energy > best_energy[i]:
-                step_back *= 0.5
-                best_u[i] = backup_u + step_back * dx[i]
-                best_v[i] = backup_v + step_back * dy[i]
-            else:
-                step = -b / H
-                step = min(max(step, -0.5), 0.5) if np.isfinite(step) else 0.0
-                backup_u, backup_v = best_u[i], best_v[i]
-                step_back = step
-                best_u[i] += step * dx[i]
-                best_v[i] += step * dy[i]
-                best_energy[i] = energy
-            if not abs(step_back) >= threshold:
-                break
+
+@numba.njit(cache=True, nogil=True)
+def _keep_midpoint(i, new_status, u_min, v_min, u_max, v_max, dist, status, last_uv, pixel_interval):
+    status[i] = new_status
+    last_uv[i, 0], last_uv[i, 1] = (u_min + u_max) * 0.5, (v_min + v_max) * 0.5
+    pixel_interval[i] = dist
+
+
+@numba.njit(cache=True, nogil=True)
+def _refine_on_line(packed, start_u, start_v, dx, dy, rotated, color, weight, factor, offset, huber, missing_energy,
+                    iterations, threshold):
+    """traceOn's Gauss-Newton refinement of one point's position along its epipolar direction (dx, dy).
+
+    The energy is the pattern's Huber energy with the gradient-dependent weights squared; a pattern pixel outside
+    the image costs ``missing_energy``. A step that lowers the energy is taken (clamped to +-0.5 px,
+    H = 1 + sum w (d r / d step)^2); one that raises it goes back half way from the last good position. It stops
+    when its last step is below ``threshold``. Returns the position and its energy."""
+    best_u, best_v = start_u, start_v
+    best_energy = missing_energy
+    backup_u, backup_v = best_u, best_v
+    step_back = 0.0
+    for _ in range(iterations):
+        energy = 0.0
+        H = 1.0
+        b = 0.0
+        for k in range(rotated.shape[0]):
+            pu = best_u + rotated[k, 0]
+            pv = best_v + rotated[k, 1]
+            if not (pu >= 0.0 and pv >= 0.0 and pu < packed.shape[1] - 1 and pv < packed.shape[0] - 1):
+                energy += missing_energy
+                continue
+            intensity, gx, gy = bilinear3(packed, pu, pv)
+            residual = intensity - (factor * color[k] + offset)
+            magnitude = abs(residual)
+            w = 1.0 if magnitude <= huber else huber / magnitude
+            energy += weight[k] * weight[k] * w * residual * residual * (2.0 - w)
+            d_residual = dx * gx + dy * gy
+            H += w * d_residual * d_residual
+            b += w * residual * d_residual
+        if energy > best_energy:
+            step_back *= 0.5
+            best_u = backup_u + step_back * dx
+            best_v = backup_v + step_back * dy
+        else:
+            step = -b / H
+            step = min(max(step, -0.5), 0.5) if np.isfinite(step) else 0.0
+            backup_u, backup_v = best_u, best_v
+            step_back = step
+            best_u += step * dx
+            best_v += step * dy
+            best_energy = energy
+        if not abs(step_back) >= threshold:
+            break
     return best_u, best_v, best_energy
 
 

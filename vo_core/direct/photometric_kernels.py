@@ -281,46 +281,54 @@ def bilinear1(image, u, v):
 @numba.njit(cache=True, nogil=True)
 def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
                     missing_energy, test_radius):
-    """traceOn's discrete search: the pattern's Huber energy at 1-px steps along each point's epipolar segment.
-
-    Point i starts at (start_u[i], start_v[i]) and moves by (dx[i], dy[i]) for num_steps[i] steps; its 8
-    pattern offsets ``rotated`` are compared with ``color[i]`` under the affine (factor, offset). A pattern
-    pixel outside the image costs ``missing_energy``. Returns per point the best position and the quality:
-    the lowest energy more than ``test_radius`` steps from the best over the best (1e10 when there is none).
-    """
+    """``search_line`` for every point i: its segment starts at (start_u[i], start_v[i]) and moves by (dx[i], dy[i])
+    for num_steps[i] steps, its pattern colours are ``color[i]``. Returns the best positions and the qualities."""
     n = len(start_u)
     best_u = np.empty(n)
     best_v = np.empty(n)
     quality = np.empty(n)
-    height, width = intensity.shape
     energies = np.empty(num_steps.max() if n else 0)
     for i in range(n):
-        best_step = 0
-        for step in range(num_steps[i]):
-            u = start_u[i] + step * dx[i]
-            v = start_v[i] + step * dy[i]
-            energy = 0.0
-            for k in range(rotated.shape[0]):
-                pu = u + rotated[k, 0]
-                pv = v + rotated[k, 1]
-                if not (pu >= 0.0 and pv >= 0.0 and pu < width - 1 and pv < height - 1):
-                    energy += missing_energy
-                    continue
-                residual = bilinear1(intensity, pu, pv) - (factor * color[i, k] + offset)
-                magnitude = abs(residual)
-                weight = 1.0 if magnitude <= huber else huber / magnitude
-                energy += weight * residual * residual * (2.0 - weight)
-            energies[step] = energy
-            if energy < energies[best_step]:
-                best_step = step
-        second = 1e10
-        for step in range(num_steps[i]):
-            if abs(step - best_step) > test_radius and energies[step] < second:
-                second = energies[step]
-        best_u[i] = start_u[i] + best_step * dx[i]
-        best_v[i] = start_v[i] + best_step * dy[i]
-        quality[i] = second / max(energies[best_step], 1e-12)
+        best_u[i], best_v[i], quality[i] = search_line(intensity, start_u[i], start_v[i], dx[i], dy[i], num_steps[i],
+                                                       rotated, color[i], factor, offset, huber, missing_energy,
+                                                       test_radius, energies)
     return best_u, best_v, quality
+
+
+@numba.njit(cache=True, nogil=True)
+def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
+                missing_energy, test_radius, energies):
+    """traceOn's discrete search: the pattern's Huber energy at 1-px steps along one point's epipolar segment.
+
+    The segment starts at (start_u, start_v) and moves by (dx, dy) for ``num_steps`` steps; the 8 pattern offsets
+    ``rotated`` are compared with ``color`` under the affine (factor, offset). A pattern pixel outside the image costs
+    ``missing_energy``. ``energies`` holds at least ``num_steps`` values (a buffer). Returns the best position and
+    the quality: the lowest energy more than ``test_radius`` steps from the best over the best (1e10 when there is
+    none)."""
+    height, width = intensity.shape
+    best_step = 0
+    for step in range(num_steps):
+        u = start_u + step * dx
+        v = start_v + step * dy
+        energy = 0.0
+        for k in range(rotated.shape[0]):
+            pu = u + rotated[k, 0]
+            pv = v + rotated[k, 1]
+            if not (pu >= 0.0 and pv >= 0.0 and pu < width - 1 and pv < height - 1):
+                energy += missing_energy
+                continue
+            residual = bilinear1(intensity, pu, pv) - (factor * color[k] + offset)
+            magnitude = abs(residual)
+            weight = 1.0 if magnitude <= huber else huber / magnitude
+            energy += weight * residual * residual * (2.0 - weight)
+        energies[step] = energy
+        if energy < energies[best_step]:
+            best_step = step
+    second = 1e10
+    for step in range(num_steps):
+        if abs(step - best_step) > test_radius and energies[step] < second:
+            second = energies[step]
+    return start_u + best_step * dx, start_v + best_step * dy, second / max(energies[best_step], 1e-12)
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
