@@ -106,8 +106,12 @@ class MappingConfig:
     max_queued_frames: int = 3
     # The feature half's process (features/feature_process.py) runs this much nicer than tracking and the direct
     # mapper: it is behind neither (tracking waits for the direct reference, the feature map only has to keep up),
-    # so on a busy machine the cores go to them first. 0: the same priority.
-    feature_niceness: int = 10
+    # so on a busy machine the cores go to them first. 0: the same priority. Offline the feature map is only waited
+    # for before a recovery and at the end (19: the window optimization ran 20 % longer beside it at 10); live, a
+    # suspect frame's check waits for it while frames arrive (19 processed 37-136 of teddy's 200 frames at 30 Hz,
+    # 10: 146-165). Measured in BENCHMARKS.md (Real time).
+    feature_niceness: int = 19
+    live_feature_niceness: int = 10
     # How often Python lets another thread take the interpreter lock (sys.setswitchinterval) while mapping threads
     # run; Python's own 5 ms made tracking wait up to 5 ms each time it came back from a compiled kernel while the
     # mapper ran Python (tracking does that a dozen times a frame). Measured in BENCHMARKS.md (Real time).

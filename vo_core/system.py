@@ -115,7 +115,8 @@ class Odometry:
         mapping = config.mapping
         threaded = mapping.threaded and self.front_end is None
         if config.method == "fdmo":
-            self.features = _feature_half(config.features, camera, mapping.feature_niceness if threaded else None)
+            niceness = mapping.feature_niceness if mapping.wait_for_keyframes else mapping.live_feature_niceness
+            self.features = _feature_half(config.features, camera, niceness if threaded else None)
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
