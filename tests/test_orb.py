@@ -117,6 +117,23 @@ def test_a_mask_keeps_features_off_the_masked_pixels(extractor, image):
     assert np.all(found.uv[:, 0] >= 319.5 - OrbConfig().scale_factor ** (OrbConfig().num_levels - 1))
 
 
+def test_weak_corners_only_where_a_cell_has_no_strong_one(extractor, image):
+    """ORB-SLAM2's two FAST thresholds: minThFAST corners are taken only in the cells where iniThFAST found none.
+    The left half's contrast is tripled (every cell has strong corners), the right half's cut to 0.3 (most respond
+    below iniThFAST)."""
+    config = OrbConfig()
+    contrast = image.astype(np.float64)
+    mean = contrast.mean()
+    contrast[:, :320] = mean + (contrast[:, :320] - mean) * 3.0
+    contrast[:, 320:] = mean + (contrast[:, 320:] - mean) * 0.3
+    found = extractor.extract(np.clip(contrast, 0, 255).astype(np.uint8))
+    level0 = found.subset(found.level == 0)
+    left, right = level0.uv[:, 0] < 280, level0.uv[:, 0] > 360  # away from the cells astride the seam
+    assert left.sum() > 100 and right.sum() > 20
+    assert np.all(level0.response[left] >= config.fast_threshold)
+    assert np.any(level0.response[right] < config.fast_threshold)
+
+
 def test_orientation_turns_with_the_image(extractor, image, features):
     """np.rot90 turns pixel (u, v) to (v, W - 1 - u): level-0 corners land on exact pixels, their intensity
     centroid turns by -90 degrees, and the steered descriptors stay close."""
