@@ -136,6 +136,22 @@ def test_the_brightness_transfers_of_all_pairs_at_once_are_each_pairs():
         assert (factor[h, t], offset[h, t]) == pytest.approx(expected, rel=1e-15, abs=1e-15)
 
 
+def test_a_marginalization_after_the_optimization_is_that_of_a_fresh_optimizer():
+    """The marginalization reuses the optimization's stacked images only for the very keyframes it optimized, in
+    their order: right after it, and for the same keyframes in another order, the prior is a fresh optimizer's."""
+    sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
+    keyframes = true_window(sequence)
+
+    def prior(window, window_keyframes) -> np.ndarray:
+        marginalized = window.marginalize(window_keyframes, 0, MarginalizationPrior())[0]
+        return np.concatenate([marginalized.H.ravel(), marginalized.b])
+
+    for order in (keyframes, keyframes[::-1]):
+        window = optimizer()
+        window.optimize(keyframes, MarginalizationPrior())
+        np.testing.assert_array_equal(prior(window, order), prior(optimizer(), order))
+
+
 def test_steps_with_a_fixed_scale_keep_the_window_scale():
     """With the scale fixed from the first step on (it is, once the window has a prior), the keyframes move
     only orthogonally to the window's scale direction (each translation along its offset from the gauge
