@@ -9,7 +9,7 @@ from test_direct_support import PlaneScene, pose, small_camera
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.coarse_tracker import CoarseTracker
 from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, optimize_for_activation
-from vo_core.direct.pixel_selector import PixelSelector, gradient_thresholds
+from vo_core.direct.pixel_selector import PixelSelector, block_thresholds
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log
 
@@ -107,6 +107,16 @@ def test_pixel_selection_spreads_over_the_image(pair):
     assert len(occupied) == 16  # every cell of a 4x4 grid has points
 
 
+def test_pixel_selection_reaches_past_the_last_whole_threshold_block(pair):
+    """Pixels in the partial blocks at the bottom edge are judged by the last whole block's threshold."""
+    _, reference, _, _, _ = pair
+    h = reference[0].intensity.shape[0]
+    block = CONFIG.selector.block_size
+    assert h % block  # the test image has a partial row of blocks
+    selection = PixelSelector(CONFIG.selector, seed=0).select(reference, 1000)
+    assert np.any(selection.uv[:, 1] >= h // block * block)
+
+
 def test_pyramid_levels_are_block_means_with_central_difference_gradients():
     image = np.random.default_rng(3).uniform(0, 255, (61, 83)).astype(np.float32)  # odd: last row/column dropped
     pyramid = ImagePyramid(image, small_camera(83, 61), CONFIG.pyramid)
@@ -140,11 +150,9 @@ def test_gradient_thresholds_are_smoothed_block_medians():
         return sum(padded[dy : dy + rows, dx : dx + cols] for dy in range(3) for dx in range(3))
 
     smoothed = sum_3x3(medians + config.hist_add) / sum_3x3(np.ones_like(medians))
-    thresholds = gradient_thresholds(grad_sq, config)
-    assert thresholds.shape == grad_sq.shape
-    assert np.allclose(thresholds[40, 70], smoothed[1, 2] ** 2)
-    assert np.allclose(thresholds[99, 139], smoothed[-1, -1] ** 2)  # the partial blocks take the last block's
-    assert np.allclose(thresholds[: medians.shape[0] * block : block, : medians.shape[1] * block : block], smoothed**2)
+    thresholds = block_thresholds(grad_sq, config)
+    assert thresholds.shape == medians.shape  # the partial blocks at the edges belong to the last whole ones
+    assert np.allclose(thresholds, smoothed**2)
 
 
 @pytest.fixture(scope="module")

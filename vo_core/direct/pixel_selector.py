@@ -36,26 +36,24 @@ def _sum_3x3(values: np.ndarray) -> np.ndarray:
     return sum(padded[dy : dy + h, dx : dx + w] for dy in range(3) for dx in range(3))
 
 
-def gradient_thresholds(grad_sq: np.ndarray, config: SelectorConfig) -> np.ndarray:
-    """Per-pixel threshold on |grad|^2 from the smoothed per-block median (+7) of |grad| (makeHists)."""
+def block_thresholds(grad_sq: np.ndarray, config: SelectorConfig) -> np.ndarray:
+    """Per block of ``block_size`` pixels, the threshold on |grad|^2: the smoothed block median (+7) of |grad|, squared
+    (makeHists). Pixels past the last whole block belong to it (``_block_of``)."""
     h, w = grad_sq.shape
     block = config.block_size
     h_blocks, w_blocks = max(h // block, 1), max(w // block, 1)
-    magnitude = np.minimum(np.sqrt(grad_sq).astype(np.int32), config.hist_max_gradient)
-    quantile = _block_quantiles(magnitude, block, h_blocks, w_blocks, config.hist_max_gradient, config.hist_quantile)
+    quantile = _block_quantiles(grad_sq, block, h_blocks, w_blocks, config.hist_max_gradient, config.hist_quantile)
     block_threshold = quantile + config.hist_add
     smoothed = _sum_3x3(block_threshold) / _sum_3x3(np.ones_like(block_threshold))
-    block_rows = np.minimum(np.arange(h) // block, h_blocks - 1)
-    block_cols = np.minimum(np.arange(w) // block, w_blocks - 1)
-    return (smoothed**2)[np.ix_(block_rows, block_cols)]
+    return smoothed**2
 
 
 @numba.njit(cache=True, nogil=True)
-def _block_quantiles(magnitude, block, h_blocks, w_blocks, max_gradient, quantile):
-    """makeHists: per block the ``quantile`` of the integer gradient magnitudes (0..max_gradient) by histogram,
-    the image border skipped, ``max_gradient`` for a block without pixels. computeHistQuantil: the first bin
-    whose cumulative count exceeds count * q + 0.5 (at most the last pixel's)."""
-    h, w = magnitude.shape
+def _block_quantiles(grad_sq, block, h_blocks, w_blocks, max_gradient, quantile):
+    """makeHists: per block the ``quantile`` of the integer gradient magnitudes min(int(|grad|), max_gradient) by
+    histogram, the image border skipped, ``max_gradient`` for a block without pixels. computeHistQuantil: the first
+    bin whose cumulative count exceeds count * q + 0.5 (at most the last pixel's)."""
+    h, w = grad_sq.shape
     out = np.empty((h_blocks, w_blocks))
     histogram = np.zeros(max_gradient + 1, np.int64)
     for block_row in range(h_blocks):
@@ -63,7 +61,7 @@ def _block_quantiles(magnitude, block, h_blocks, w_blocks, max_gradient, quantil
             histogram[:] = 0
             for y in range(max(block_row * block, 1), min((block_row + 1) * block, h - 1)):
                 for x in range(max(block_col * block, 1), min((block_col + 1) * block, w - 1)):
-                    histogram[magnitude[y, x]] += 1
+                    histogram[min(int(np.sqrt(grad_sq[y, x])), max_gradient)] += 1
             count = histogram.sum()
             out[block_row, block_col] = max_gradient
             if count == 0:
@@ -87,8 +85,9 @@ class PixelSelector:
     def select(self, pyramid: ImagePyramid, density: float, threshold_factor: float = 1.0) -> Selection:
         """About ``density`` well-spread pixels with high gradient (makeMaps)."""
         config = self.config
-        thresholds = gradient_thresholds(pyramid[0].grad_sq, config)
-        selection = self._select_at_potential(pyramid, thresholds, self.potential, threshold_factor)
+        grad_sq = [pyramid[level].grad_sq if level < len(pyramid) else None for level in range(len(LEVEL_TYPES))]
+        thresholds = block_thresholds(grad_sq[0], config)
+        selection = self._select_at_potential(pyramid, grad_sq, thresholds, self.potential, threshold_factor)
         for _ in range(config.max_resample_rounds):
             have = max(len(selection.kind), 1)
             ratio = density / have
@@ -99,7 +98,7 @@ class PixelSelector:
                 self.potential = max(ideal, self.potential + 1)
             else:
                 break
-            selection = self._select_at_potential(pyramid, thresholds, self.potential, threshold_factor)
+            selection = self._select_at_potential(pyramid, grad_sq, thresholds, self.potential, threshold_factor)
         have = max(len(selection.kind), 1)
         self.potential = self._ideal_potential(have, density)
         ratio = density / have
@@ -114,44 +113,40 @@ class PixelSelector:
         return max(int(np.sqrt(k / want) - 1), 1)
 
     def _select_at_potential(
-        self, pyramid: ImagePyramid, thresholds: np.ndarray, pot: int, threshold_factor: float
+        self, pyramid: ImagePyramid, grad_sq: list, thresholds: np.ndarray, pot: int, threshold_factor: float
     ) -> Selection:
+        """``grad_sq``: |grad|^2 of levels 0-2 (None past the pyramid); ``thresholds``: ``block_thresholds``."""
         config = self.config
         level0 = pyramid[0]
         h, w = level0.intensity.shape
         big = 4 * pot
         height, width = -(-h // big) * big, -(-w // big) * big  # whole cells of the coarsest type
-        ys, xs = np.arange(h), np.arange(w)
-        inside = np.zeros((h, w), dtype=bool)
-        inside[config.border : h - config.border, config.border : w - config.border - 1] = True
-        grad_sq_levels = [level0.grad_sq]
-        for level, scale in ((1, 0.5), (2, 0.25)):
-            if level < len(pyramid):
-                gl = pyramid[level].grad_sq
-                rows = np.minimum((ys * scale + scale / 2).astype(int), gl.shape[0] - 1)
-                cols = np.minimum((xs * scale + scale / 2).astype(int), gl.shape[1] - 1)
-                grad_sq_levels.append(gl[np.ix_(rows, cols)])
-            else:
-                grad_sq_levels.append(np.zeros((h, w)))
         chosen = np.zeros((h, w), dtype=np.int8)  # the type of the pixel taken there, 0 where none
         for level, kind in enumerate(LEVEL_TYPES):
             cell = pot * kind
             weight = config.grad_downweight_per_level ** (level * (level + 1) // 2)  # 1, 0.75, 0.75^3 as DSO
-            candidate = (grad_sq_levels[level] > thresholds * weight * threshold_factor) & inside
             # A random direction per cell spreads the gradient directions of the selected pixels.
             angle = self.rng.uniform(0.0, np.pi, size=(height // cell, width // cell))
-            _take_best_in_cells(candidate, level0.packed, np.cos(angle), np.sin(angle), cell, kind, chosen)
+            if grad_sq[level] is None:  # a pyramid this short has no pixel of this type
+                continue
+            _take_best_in_cells(grad_sq[level], 0.5**level, thresholds, config.block_size, weight, threshold_factor,
+                                config.border, level0.packed, np.cos(angle), np.sin(angle), cell, kind, chosen)
         rows, cols = np.nonzero(chosen)  # row-major: sorted by (v, u)
         return Selection(np.stack([cols, rows], axis=1), chosen[rows, cols].astype(np.int64))
 
 
 @numba.njit(cache=True, nogil=True)
-def _take_best_in_cells(candidate, packed, cos_angle, sin_angle, cell, kind, chosen):
+def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, border, packed, cos_angle, sin_angle, cell,
+                        kind, chosen):
     """select() for one cell size: in each cell where no finer level chose a pixel, the candidate with the
-    largest |gradient . direction| (the first one in row-major order on ties) is chosen as ``kind``.
+    largest |gradient . direction| (the first one in row-major order on ties) is chosen as ``kind``. A candidate is a
+    level-0 pixel at least ``border`` inside the image (one more on the right) whose level's |grad|^2 (``grad_sq``,
+    the level's pixel under it: ``scale`` = 2^-level) passes its block's threshold times ``weight`` and ``factor``.
 
     One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size."""
-    h, w = candidate.shape
+    h, w = chosen.shape
+    level_h, level_w = grad_sq.shape
+    h_blocks, w_blocks = thresholds.shape
     for cell_row in range(cos_angle.shape[0]):
         for cell_col in range(cos_angle.shape[1]):
             y0, x0 = cell_row * cell, cell_col * cell
@@ -164,8 +159,16 @@ def _take_best_in_cells(candidate, packed, cos_angle, sin_angle, cell, kind, cho
                 continue
             best, best_y, best_x = 0.0, -1, -1
             for y in range(y0, y1):
+                if y < border or y >= h - border:
+                    continue
+                level_y = min(int(y * scale + scale / 2), level_h - 1)
+                block_y = min(y // block, h_blocks - 1)
                 for x in range(x0, x1):
-                    if candidate[y, x]:
+                    if x < border or x >= w - border - 1:
+                        continue
+                    level_x = min(int(x * scale + scale / 2), level_w - 1)
+                    threshold = thresholds[block_y, min(x // block, w_blocks - 1)] * weight * factor
+                    if grad_sq[level_y, level_x] > threshold:
                         score = abs(packed[y, x, 1] * cos_angle[cell_row, cell_col]
                                     + packed[y, x, 2] * sin_angle[cell_row, cell_col])
                         if score > best:
