@@ -5,7 +5,7 @@ import numpy as np
 
 from vo_core.direct.config import PyramidConfig
 from vo_core.direct.photometric_kernels import (
-    TERM_COLUMNS, bilinear3, bilinear_gradient, epipolar_search, normal_equations, warp_residuals,
+    TERM_COLUMNS, bilinear3, bilinear_gradient, normal_equations, search_line, warp_residuals,
 )
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.camera import PinholeCamera
@@ -78,7 +78,7 @@ def test_warp_residuals_and_normal_equations_match_numpy():
     assert np.allclose(H, H.T)
 
 
-def test_epipolar_search_finds_the_matching_step_and_rates_it():
+def test_the_line_search_finds_the_matching_step_and_rates_it():
     rng = np.random.default_rng(5)
     intensity = packed_image(rng)[..., 0].copy()
     rotated = np.array([[0, -2], [-1, -1], [1, -1], [-2, 0], [0, 0], [2, 0], [-1, 1], [0, 2]], float)
@@ -88,9 +88,10 @@ def test_epipolar_search_finds_the_matching_step_and_rates_it():
     true_u, true_v = start_u + true_step * dx, start_v + true_step * dy
     color = np.array([[intensity[int(round(v + o[1])), int(round(u + o[0]))] for o in rotated]
                       for u, v in zip(true_u, true_v)], dtype=np.float32)
-    best_u, best_v, quality = epipolar_search(
-        intensity, start_u, start_v, dx, dy, np.array([30, 30]), rotated, color, 1.0, 0.0, HUBER, 1e5, 2
-    )
+    energies = np.empty(30)
+    best_u, best_v, quality = np.array([
+        search_line(intensity, start_u[i], start_v[i], dx[i], dy[i], 30, rotated, color[i], 1.0, 0.0, HUBER, 1e5, 2,
+                    energies) for i in range(2)]).T
     np.testing.assert_allclose(best_u, true_u, atol=1e-6)
     np.testing.assert_allclose(best_v, true_v, atol=1e-6)
     assert np.all(quality > 10.0)  # the match is unambiguous on this texture

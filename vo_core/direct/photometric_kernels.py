@@ -279,23 +279,6 @@ def bilinear1(image, u, v):
 
 
 @numba.njit(cache=True, nogil=True)
-def epipolar_search(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
-                    missing_energy, test_radius):
-    """``search_line`` for every point i: its segment starts at (start_u[i], start_v[i]) and moves by (dx[i], dy[i])
-    for num_steps[i] steps, its pattern colours are ``color[i]``. Returns the best positions and the qualities."""
-    n = len(start_u)
-    best_u = np.empty(n)
-    best_v = np.empty(n)
-    quality = np.empty(n)
-    energies = np.empty(num_steps.max() if n else 0)
-    for i in range(n):
-        best_u[i], best_v[i], quality[i] = search_line(intensity, start_u[i], start_v[i], dx[i], dy[i], num_steps[i],
-                                                       rotated, color[i], factor, offset, huber, missing_energy,
-                                                       test_radius, energies)
-    return best_u, best_v, quality
-
-
-@numba.njit(cache=True, nogil=True)
 def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
                 missing_energy, test_radius, energies):
     """traceOn's discrete search: the pattern's Huber energy at 1-px steps along one point's epipolar segment.

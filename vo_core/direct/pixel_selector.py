@@ -38,7 +38,7 @@ def _sum_3x3(values: np.ndarray) -> np.ndarray:
 
 def block_thresholds(grad_sq: np.ndarray, config: SelectorConfig) -> np.ndarray:
     """Per block of ``block_size`` pixels, the threshold on |grad|^2: the smoothed block median (+7) of |grad|, squared
-    (makeHists). Pixels past the last whole block belong to it (``_block_of``)."""
+    (makeHists). Pixels past the last whole block belong to it (``_take_best_in_cells``)."""
     h, w = grad_sq.shape
     block = config.block_size
     h_blocks, w_blocks = max(h // block, 1), max(w // block, 1)
