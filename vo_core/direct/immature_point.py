@@ -20,6 +20,7 @@ from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
+from vo_core.geometry.camera import PinholeCamera
 
 MISSING_ENERGY = 1e5  # traceOn: energy of a pattern pixel that falls outside the image
 
@@ -277,12 +278,15 @@ def _refine_on_line(packed, start_u, start_v, dx, dy, rotated, color, weight, fa
 
 
 @dataclass
-class ActivationTarget:
-    """Another keyframe of the window as seen from the host: its level 0, pose and brightness transfer."""
+class ActivationTargets:
+    """The other keyframes of the window as seen from a host: their level-0 intensities, poses and brightness
+    transfers. The images are the window's stack, shared by its hosts; target j is ``images[image_index[j]]``."""
 
-    level: PyramidLevel
-    T_target_host: np.ndarray
-    affine: tuple[float, float]  # (factor, offset) predicting target intensities from host intensities
+    camera: PinholeCamera
+    images: np.ndarray  # (K, H, W) float32
+    image_index: np.ndarray  # (T,) int64
+    T_target_host: np.ndarray  # (T, 4, 4)
+    affine: np.ndarray  # (T, 2) (factor, offset) predicting target intensities from host intensities
 
 
 @dataclass
@@ -331,118 +335,121 @@ def _sample_pattern(level: PyramidLevel, uv: np.ndarray) -> np.ndarray:
 
 
 def optimize_for_activation(
-    points: ImmaturePoints, index: np.ndarray, targets: list[ActivationTarget], config: ImmatureConfig
+    points: ImmaturePoints, index: np.ndarray, targets: ActivationTargets, config: ImmatureConfig
 ) -> tuple[np.ndarray, np.ndarray]:
-    """optimizeImmaturePoint for the points ``index``, from the middle of their traced interval."""
-    pattern = PatternPoints(
-        points.uv[index], points.color[index], points.weight[index], points.energy_threshold[index],
-        points.grad_h[index], points.host_grad_sq[index],
-    )
-    return optimize_inverse_depths(pattern, points.idepth[index], targets, config, config.first_outlier_slack)
-
-
-def optimize_inverse_depths(
-    points: PatternPoints,
-    idepth: np.ndarray,
-    targets: list[ActivationTarget],
-    config: ImmatureConfig,
-    first_outlier_slack: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray]:
-    """LM on each point's inverse depth over all ``targets`` (optimizeImmaturePoint), poses held fixed.
+    """optimizeImmaturePoint for the points ``index``, from the middle of their traced interval: LM on each
+    point's inverse depth over all ``targets``, poses held fixed.
 
     Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
     ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
-    idepth = np.array(idepth, dtype=float)
-    n = len(idepth)
-    if n == 0 or not targets:
-        return idepth, np.zeros(n, dtype=bool)
-    in_bounds = np.ones((n, len(targets)), dtype=bool)  # a target once out of bounds stays out (ResState OOB)
-    camera = targets[0].level.camera  # one camera for all frames
-    pattern_uv = points.uv[:, None, :] + PATTERN[None]
-    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(n, len(PATTERN), 3)
-    energy, H, b, inlier = _depth_system(points, rays, targets, idepth, in_bounds, first_outlier_slack, config)
-    usable = np.isfinite(energy) & (H >= config.min_idepth_hessian)
-    lam = np.full(n, 0.1)
-    running = usable.copy()
-    for _ in range(config.activation_gn_iterations):
-        if not np.any(running):
-            break
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = np.where(running, b / (H * (1.0 + lam)), 0.0)
-        trial = idepth - step
-        e_new, H_new, b_new, inl_new = _depth_system(points, rays, targets, trial, in_bounds, 1.0, config)
-        usable &= ~running | (H_new >= config.min_idepth_hessian)
-        accept = running & (e_new < energy)
-        idepth = np.where(accept, trial, idepth)
-        energy, H, b = np.where(accept, e_new, energy), np.where(accept, H_new, H), np.where(accept, b_new, b)
-        inlier = np.where(accept[:, None], inl_new, inlier)
-        lam = np.where(accept, lam * 0.5, lam * 5.0)
-        running &= usable & ~(np.abs(step) < 1e-4 * np.abs(idepth))
-    usable &= np.isfinite(idepth) & (idepth > 0) & (inlier.sum(axis=1) >= config.activation_min_observations)
+    idepth = np.array(points.idepth[index], dtype=float)
+    if len(idepth) == 0 or len(targets.image_index) == 0:
+        return idepth, np.zeros(len(idepth), dtype=bool)
+    pattern_uv = points.uv[index][:, None, :] + PATTERN[None]
+    rays = targets.camera.unproject(pattern_uv.reshape(-1, 2)).reshape(len(idepth), len(PATTERN), 3)
+    camera = targets.camera
+    usable = _optimize_inverse_depths(
+        rays, idepth, points.color[index], points.weight[index] ** 2, points.energy_threshold[index], targets.images,
+        targets.image_index, targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(),
+        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(), np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+        float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
+        float(config.min_idepth_hessian), int(config.activation_min_observations),
+    )
     return idepth, usable
 
 
-def _depth_system(points: PatternPoints, rays, targets, idepth, in_bounds, outlier_slack, config):
-    """linearizeResidual summed over targets: energy, H_dd, b_d per point and inlier flags per target.
+# optimizeImmaturePoint stops once a step moves the inverse depth by less than this share of it.
+CONVERGED_STEP_SHARE = 1e-4
 
-    ``rays`` (n, 8, 3) are the host's K^-1 (u, v, 1) of the pattern pixels; ``in_bounds`` (n, targets)
-    is updated: a pattern leaving a target once is not evaluated there again."""
-    n = len(idepth)
-    energy, H, b = np.zeros(n), np.zeros(n), np.zeros(n)
-    inlier = np.zeros((n, len(targets)), dtype=bool)
-    weight_sq = points.weight**2
-    threshold = points.energy_threshold * outlier_slack
-    for j, target in enumerate(targets):
-        camera = target.level.camera
-        factor, offset = target.affine
-        _add_depth_terms(
-            rays, idepth, points.color, weight_sq, threshold, target.T_target_host[:3, :3],
-            target.T_target_host[:3, 3], np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
-            target.level.intensity, float(factor), float(offset), config.huber_threshold, in_bounds[:, j],
-            inlier[:, j], energy, H, b,
-        )
-    return energy, H, b, inlier
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, image_index, R, t, factor, offset,
+                             intrinsics, huber, first_outlier_slack, iterations, min_hessian, min_observations):
+    """optimize_for_activation's LM, point by point on numba's threads (each point its own: the result does not
+    depend on the threads). ``rays`` (n, 8, 3) are the host's K^-1 (u, v, 1) of the pattern pixels; target j is
+    ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host with the affine transfer (factor[j], offset[j]).
+    ``idepth`` is optimized in place; returns the usable mask."""
+    n, n_targets = len(idepth), len(image_index)
+    usable = _false_mask(n)
+    for i in numba.prange(n):
+        in_bounds = np.ones(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
+        inlier = np.zeros(n_targets, np.bool_)
+        trial_inlier = np.zeros(n_targets, np.bool_)
+        residuals = np.empty(rays.shape[1])
+        d_idepth = np.empty(rays.shape[1])
+        energy, H, b = _depth_system(i, idepth[i], first_outlier_slack, rays, color, weight_sq, threshold, images,
+                                     image_index, R, t, factor, offset, intrinsics, huber, in_bounds, inlier,
+                                     residuals, d_idepth)
+        running = np.isfinite(energy) and H >= min_hessian
+        usable[i] = running
+        lam = 0.1
+        for _ in range(iterations):
+            if not running:
+                break
+            step = b / (H * (1.0 + lam))
+            trial = idepth[i] - step
+            e_new, H_new, b_new = _depth_system(i, trial, 1.0, rays, color, weight_sq, threshold, images, image_index,
+                                                R, t, factor, offset, intrinsics, huber, in_bounds, trial_inlier,
+                                                residuals, d_idepth)
+            usable[i] = H_new >= min_hessian
+            if e_new < energy:
+                idepth[i], energy, H, b = trial, e_new, H_new, b_new
+                inlier[:] = trial_inlier
+                lam *= 0.5
+            else:
+                lam *= 5.0
+            running = usable[i] and not abs(step) < CONVERGED_STEP_SHARE * abs(idepth[i])
+        usable[i] = usable[i] and np.isfinite(idepth[i]) and idepth[i] > 0 and inlier.sum() >= min_observations
+    return usable
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_depth_terms(rays, idepth, color, weight_sq, threshold, R, t, intrinsics, intensity, factor, offset, huber,
-                     in_bounds, inlier, energy, H, b):
-    """One target's part of ``_depth_system``, added into ``energy``, ``H``, ``b``; sets ``inlier`` and clears
-    ``in_bounds`` where the pattern leaves the image (a 1 px margin, 2 px on the right and bottom, where the
-    gradients at the four corners need a pixel beyond them) or the point falls behind the camera. The targets are
-    older keyframes, which keep only their intensities (``PyramidLevel.release_packed``)."""
+def _false_mask(n):
+    return np.zeros(n, np.bool_)
+
+
+@numba.njit(cache=True, nogil=True)
+def _depth_system(i, idepth, outlier_slack, rays, color, weight_sq, threshold, images, image_index, R, t, factor,
+                  offset, intrinsics, huber, in_bounds, inlier, residuals, d_idepth):
+    """linearizeResidual of point i at ``idepth``, summed over the targets in order: (energy, H_dd, b_d); sets
+    ``inlier`` per target and clears ``in_bounds`` where the pattern leaves the image (a 1 px margin, 2 px on the
+    right and bottom, where the gradients at the four corners need a pixel beyond them) or the point falls behind
+    the camera. The targets are older keyframes, which keep only their intensities (``PyramidLevel.release_packed``)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    height, width = intensity.shape[0], intensity.shape[1]
-    pattern = rays.shape[1]
-    residuals = np.empty(pattern)
-    d_idepth = np.empty(pattern)
-    for i in range(len(idepth)):
-        if not in_bounds[i]:
+    height, width = images.shape[1], images.shape[2]
+    point_threshold = threshold[i] * outlier_slack
+    energy = H = b = 0.0
+    for j in range(len(image_index)):
+        inlier[j] = False
+        if not in_bounds[j]:
             continue
-        for k in range(pattern):
-            x = R[0, 0] * rays[i, k, 0] + R[0, 1] * rays[i, k, 1] + R[0, 2] * rays[i, k, 2] + idepth[i] * t[0]
-            y = R[1, 0] * rays[i, k, 0] + R[1, 1] * rays[i, k, 1] + R[1, 2] * rays[i, k, 2] + idepth[i] * t[1]
-            z = R[2, 0] * rays[i, k, 0] + R[2, 1] * rays[i, k, 1] + R[2, 2] * rays[i, k, 2] + idepth[i] * t[2]
+        intensity = images[image_index[j]]
+        Rj, tj = R[j], t[j]
+        for k in range(rays.shape[1]):
+            x = Rj[0, 0] * rays[i, k, 0] + Rj[0, 1] * rays[i, k, 1] + Rj[0, 2] * rays[i, k, 2] + idepth * tj[0]
+            y = Rj[1, 0] * rays[i, k, 0] + Rj[1, 1] * rays[i, k, 1] + Rj[1, 2] * rays[i, k, 2] + idepth * tj[1]
+            z = Rj[2, 0] * rays[i, k, 0] + Rj[2, 1] * rays[i, k, 1] + Rj[2, 2] * rays[i, k, 2] + idepth * tj[2]
             inverse_z = 1.0 / z if z != 0.0 else -1.0
             u, v = x * inverse_z, y * inverse_z
             Ku, Kv = fx * u + cx, fy * v + cy
             if not (inverse_z > 0.0 and Ku >= 1.0 and Kv >= 1.0 and Ku < width - 2 and Kv < height - 2):
-                in_bounds[i] = False
+                in_bounds[j] = False
                 break
             value, gx, gy = bilinear_gradient(intensity, Ku, Kv)
-            residuals[k] = value - (factor * color[i, k] + offset)
+            residuals[k] = value - (factor[j] * color[i, k] + offset[j])
             # d residual / d inverse depth through the projection (u, v) = (x, y) / z
-            d_idepth[k] = gx * fx * (t[0] - t[2] * u) * inverse_z + gy * fy * (t[1] - t[2] * v) * inverse_z
-        if not in_bounds[i]:
+            d_idepth[k] = gx * fx * (tj[0] - tj[2] * u) * inverse_z + gy * fy * (tj[1] - tj[2] * v) * inverse_z
+        if not in_bounds[j]:
             continue
         e = 0.0
-        for k in range(pattern):
+        for k in range(rays.shape[1]):
             residual = residuals[k]
             magnitude = abs(residual)
             w = 1.0 if magnitude <= huber else huber / magnitude
             e += weight_sq[i, k] * w * residual * residual * (2.0 - w)
             hw = w * weight_sq[i, k]
-            H[i] += hw * d_idepth[k] * d_idepth[k]
-            b[i] += hw * residual * d_idepth[k]
-        inlier[i] = e <= threshold[i]
-        energy[i] += min(e, threshold[i])
+            H += hw * d_idepth[k] * d_idepth[k]
+            b += hw * residual * d_idepth[k]
+        inlier[j] = e <= point_threshold
+        energy += min(e, point_threshold)
+    return energy, H, b

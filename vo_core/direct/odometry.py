@@ -39,7 +39,7 @@ import numpy as np
 from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_tracker import PATTERN, CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.immature_point import ActivationTarget, ImmaturePoints, host_pattern, optimize_for_activation
+from vo_core.direct.immature_point import ActivationTargets, ImmaturePoints, host_pattern, optimize_for_activation
 from vo_core.direct.initialization import InitializationResult, InitializerFactory
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -766,6 +766,8 @@ class DirectOdometry:
                 pixel, inside = half_res_pixels(keyframe.active_points_world())
                 free[pixel[inside, 1], pixel[inside, 0]] = 0
         distance = cv2.distanceTransform(free, cv2.DIST_L1, 3) if not free.all() else np.full(free.shape, np.inf)
+        window = self.keyframes + [new_keyframe]  # the keyframes the window optimization takes next, in its order
+        images = self.window_optimizer.stacked_images(window)
         spacing = max(self.min_activation_distance, 1.0)
         grid_w = int(np.ceil(half[0] / spacing))
         taken: set[int] = set()
@@ -787,7 +789,7 @@ class DirectOdometry:
             taken.update(int(cell[i]) for i in fresh)
             chosen = candidates[np.array(fresh, dtype=int)]
             idepth, usable = optimize_for_activation(
-                immature, chosen, self._activation_targets(keyframe, new_keyframe), self.config.immature
+                immature, chosen, self._activation_targets(keyframe, window, images), self.config.immature
             )
             activating = chosen[usable]
             keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
@@ -813,18 +815,16 @@ class DirectOdometry:
         low, high = ACTIVATION_DISTANCE_RANGE
         self.min_activation_distance = float(np.clip(self.min_activation_distance + step, low, high))
 
-    def _activation_targets(self, host: Keyframe, new_keyframe: Keyframe) -> list[ActivationTarget]:
-        """Every other keyframe of the window, the new one included, as seen from ``host``."""
-        targets = []
-        for target in [k for k in self.keyframes if k is not host] + [new_keyframe]:
-            targets.append(
-                ActivationTarget(
-                    target.pyramid[0],
-                    se3_inverse(target.T_world_cam) @ host.T_world_cam,
-                    relative_affine(host.exposure, target.exposure, host.affine, target.affine),
-                )
-            )
-        return targets
+    def _activation_targets(self, host: Keyframe, window: list[Keyframe], images: np.ndarray) -> ActivationTargets:
+        """Every other keyframe of the ``window`` (the new one included), as seen from ``host``; ``images`` are the
+        window's stacked intensities."""
+        others = [i for i, k in enumerate(window) if k is not host]
+        return ActivationTargets(
+            self.camera, images, np.array(others, dtype=np.int64),
+            np.array([se3_inverse(window[i].T_world_cam) @ host.T_world_cam for i in others]),
+            np.array([relative_affine(host.exposure, window[i].exposure, host.affine, window[i].affine)
+                      for i in others], dtype=float),
+        )
 
     def _set_tracking_reference(self, keyframe: Keyframe) -> None:
         """All active points of the window, projected into the new keyframe (makeCoarseDepthL0)."""

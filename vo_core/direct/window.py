@@ -101,15 +101,14 @@ class WindowOptimizer:
         self.huber = huber_threshold
         self.outlier_energy = len(PATTERN) * outlier_threshold
         self.weight_component = outlier_sum_component
-        # The last optimization's keyframes and their stacked images, for the marginalization that may follow it in
-        # the same window (KITTI's 8 images: 3 ms a stack).
-        self._optimized: tuple[list, np.ndarray] | None = None
+        # The last stacked keyframes and their images: a new keyframe's activation, the window optimization and the
+        # marginalization that follows read the same keyframes in the same order (KITTI's 8 images: 3 ms a stack).
+        self._stacked: tuple[list, np.ndarray] | None = None
 
     @_BLAS.wrap(limits=1, user_api="blas")
     def optimize(self, keyframes: list, prior: MarginalizationPrior) -> WindowReport:
         start = time.perf_counter()
         points = self._window_points(keyframes)
-        self._optimized = (list(keyframes), points.images)
         idepth = np.concatenate([k.active_idepth for k in keyframes])
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
@@ -145,7 +144,7 @@ class WindowOptimizer:
     ) -> tuple[MarginalizationPrior, int]:
         """The prior once keyframe ``leaving`` (a window index) goes, with the points it hosts (DSO's
         marginalizeFrame after marginalizePointsF); and how many points were marginalized."""
-        points = self._window_points(keyframes, self._images_of_optimized(keyframes))
+        points = self._window_points(keyframes)
         idepth = np.concatenate([k.active_idepth for k in keyframes])
         poses = [k.T_world_cam for k in keyframes]
         affines = [np.asarray(k.affine, float) for k in keyframes]
@@ -159,17 +158,16 @@ class WindowOptimizer:
 
     # ------------------------------------------------------------------------------------ linearization
 
-    def _images_of_optimized(self, keyframes: list) -> np.ndarray:
-        """The keyframes' level-0 intensities stacked: the last optimization's stack where it had these very keyframes
-        in this order (a keyframe leaves right after its window's optimization), taken once."""
-        optimized, self._optimized = self._optimized, None
-        if optimized is not None and len(optimized[0]) == len(keyframes) and all(
-                a is b for a, b in zip(optimized[0], keyframes)):
-            return optimized[1]
-        return _stacked_images(keyframes)
+    def stacked_images(self, keyframes: list) -> np.ndarray:
+        """(K, H, W) the keyframes' level-0 intensities, stacked once for these very keyframes in this order."""
+        stacked = self._stacked
+        same = stacked is not None and len(stacked[0]) == len(keyframes) and all(
+            a is b for a, b in zip(stacked[0], keyframes))
+        if not same:
+            stacked = self._stacked = (list(keyframes), np.stack([k.pyramid[0].intensity for k in keyframes]))
+        return stacked[1]
 
-    def _window_points(self, keyframes: list, images: np.ndarray | None = None) -> _WindowPoints:
-        """``images``: the keyframes' stacked intensities where they are at hand."""
+    def _window_points(self, keyframes: list) -> _WindowPoints:
         counts = [len(k.active_idepth) for k in keyframes]
         uv = np.concatenate([k.active_uv for k in keyframes])
         pattern_uv = uv[:, None, :] + PATTERN[None]  # (P, 8, 2)
@@ -180,7 +178,7 @@ class WindowOptimizer:
             np.concatenate([k.active_color for k in keyframes]),
             np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-            _stacked_images(keyframes) if images is None else images,
+            self.stacked_images(keyframes),
         )
 
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
@@ -282,11 +280,6 @@ class _System:
     @property
     def residuals(self) -> int:
         return int(np.count_nonzero(self.status == POINT_IN))
-
-
-def _stacked_images(keyframes: list) -> np.ndarray:
-    """(K, H, W) the keyframes' level-0 intensities."""
-    return np.stack([k.pyramid[0].intensity for k in keyframes])
 
 
 def _scale_direction(poses: list) -> np.ndarray:
