@@ -155,6 +155,40 @@ def test_projection_search_ratio_test_between_candidates_in_the_window():
     np.testing.assert_array_equal(idx_f, [0])
 
 
+def test_projection_search_finds_what_a_search_of_every_feature_finds():
+    """The search looks through a grid of the features: on features and points spread over the image (radii of
+    2-60 px, some points outside it), it picks what comparing every point with every feature picks."""
+    rng = np.random.default_rng(11)
+    features = _features(rng.integers(0, 256, (600, 32), dtype=np.uint8), rng.uniform([0, 0], [640, 480], (600, 2)))
+    features.level = rng.integers(0, 8, 600)
+    # Points near features, with descriptors a few bits from theirs: most have one clear nearest.
+    near = rng.integers(0, 600, 300)
+    uv = features.uv[near] + rng.normal(0, 8, (300, 2))
+    uv[:10] -= 700  # outside the image
+    descriptors = np.array([_with_flipped_bits(features.descriptors[f], [int(k)])[0]
+                            for f, k in zip(near, rng.integers(0, 40, 300))])
+    level, radius = rng.integers(0, 8, 300), rng.uniform(2, 60, 300)
+    found = search_by_projection(features, uv, descriptors, level, radius, level_window=2)
+    assert len(found[0]) > 100
+    # Every point against every feature:
+    reach = radius * OrbConfig().scale_factor ** level
+    candidate = (np.linalg.norm(uv[:, None] - features.uv[None], axis=2) <= reach[:, None]) & (
+        np.abs(level[:, None] - features.level[None]) <= 2)
+    distance = np.where(candidate, hamming(descriptors, features.descriptors), 10**6)
+    order = np.lexsort((np.broadcast_to(np.arange(600), distance.shape), distance), axis=1)
+    best, second = order[:, 0], np.take_along_axis(distance, order[:, 1:2], 1)[:, 0]
+    best_distance = distance[np.arange(300), best]
+    accepted = (best_distance <= 100) & ((second == 10**6) | (best_distance < 0.8 * second))
+    point = np.flatnonzero(accepted)
+    claimed = {}  # one point per feature: the nearest, ties to the lower point index
+    for p in point:
+        f = best[p]
+        if f not in claimed or best_distance[p] < best_distance[claimed[f]]:
+            claimed[f] = p
+    expected = sorted((p, f) for f, p in claimed.items())
+    assert list(zip(found[0].tolist(), found[1].tolist())) == expected
+
+
 # ------------------------------------------------------------------------------------------------ BoW
 
 

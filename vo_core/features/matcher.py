@@ -15,10 +15,8 @@ Hamming distances: descriptors are read as four 64-bit words, XORed, and their s
 
 from __future__ import annotations
 
-import itertools
-
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from vo_core.features.config import OrbConfig
 from vo_core.features.orb import DESCRIPTOR_BYTES, Features, level_sigma2s
@@ -116,48 +114,6 @@ def orientation_consistent(
 # ------------------------------------------------------------------------------------- shared machinery
 
 
-def _pairs_with_same_key(keys_a: np.ndarray, keys_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """All pairs (i, j) with keys_a[i] == keys_b[j], without a loop: both sides are grouped by key, and pair p
-    of a key with n_a x n_b pairs takes member p // n_b of a's group and p % n_b of b's."""
-    keys_a, keys_b = np.asarray(keys_a), np.asarray(keys_b)
-    order_a, order_b = np.argsort(keys_a, kind="stable"), np.argsort(keys_b, kind="stable")
-    unique_a, start_a, count_a = np.unique(keys_a[order_a], return_index=True, return_counts=True)
-    unique_b, start_b, count_b = np.unique(keys_b[order_b], return_index=True, return_counts=True)
-    _, in_a, in_b = np.intersect1d(unique_a, unique_b, assume_unique=True, return_indices=True)
-    start_a, count_a, start_b, count_b = start_a[in_a], count_a[in_a], start_b[in_b], count_b[in_b]
-    pairs_per_key = count_a * count_b
-    total = int(pairs_per_key.sum())
-    if total == 0:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    key = np.repeat(np.arange(len(pairs_per_key)), pairs_per_key)
-    local = np.arange(total) - np.repeat(np.cumsum(pairs_per_key) - pairs_per_key, pairs_per_key)
-    i = order_a[start_a[key] + local // count_b[key]]
-    j = order_b[start_b[key] + local % count_b[key]]
-    return i, j
-
-
-def _best_per_query(
-    query: np.ndarray, target: np.ndarray, distance: np.ndarray, max_distance: float, ratio: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For each query among the candidate pairs, its nearest target if the distance is at most
-    ``max_distance`` and below ``ratio`` times the second nearest (Lowe's test; a lone candidate passes, as
-    ORB-SLAM2's second best starts at the largest distance). Returns (query, target, distance)."""
-    if len(query) == 0:
-        return query, target, distance
-    order = np.lexsort((target, distance, query))  # by query, then nearest first
-    query, target, distance = query[order], target[order], distance[order]
-    first = np.ones(len(query), dtype=bool)
-    first[1:] = query[1:] != query[:-1]
-    best = np.flatnonzero(first)
-    has_second = np.zeros(len(best), dtype=bool)
-    has_second[:-1] = ~first[best[:-1] + 1]
-    has_second[-1] = best[-1] + 1 < len(query)
-    second_distance = np.where(has_second, distance[np.minimum(best + 1, len(query) - 1)], np.inf)
-    accepted = (distance[best] <= max_distance) & (distance[best] < ratio * second_distance)
-    best = best[accepted]
-    return query[best], target[best], distance[best]
-
-
 def _one_to_one(
     query: np.ndarray, target: np.ndarray, distance: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -207,9 +163,8 @@ def match_by_bow(
     Returns (idx_a, idx_b)."""
     if len(features_a) == 0 or len(features_b) == 0:
         return _empty_match()
-    i, j = _pairs_with_same_key(nodes_a, nodes_b)
-    distance = hamming_rows(features_a.descriptors[i], features_b.descriptors[j])
-    i, j, distance = _one_to_one(*_best_per_query(i, j, distance, max_distance, ratio))
+    i, j = _nearest_sharing_node(features_a, np.arange(len(features_a)), nodes_a, features_b,
+                                 np.arange(len(features_b)), nodes_b, None, None, max_distance, ratio)
     return _keep_consistent_rotation(i, j, features_a.angle, features_b.angle, check_orientation)
 
 
@@ -244,28 +199,112 @@ def search_by_projection(
     predicted_level = np.broadcast_to(np.asarray(predicted_level, dtype=int), (count,))
     radius = np.broadcast_to(np.asarray(radius_px, dtype=float), (count,)) * scale_factor**predicted_level
     finite = np.all(np.isfinite(uv), axis=1) & np.isfinite(radius)
-    point, feature = _features_within(features.uv, uv, radius, finite)
-    level_gap = np.abs(features.level[feature] - predicted_level[point])
-    keep = (level_gap <= level_window) & _mask_or_all(available, len(features))[feature]
-    point, feature = point[keep], feature[keep]
-    distance = hamming_rows(np.asarray(descriptors)[point], features.descriptors[feature])
-    point, feature, distance = _best_per_query(point, feature, distance, max_distance, ratio)
+    point, feature, distance = _nearest_within(
+        features.uv, features.level, _words(features.descriptors), _mask_or_all(available, len(features)), uv, radius,
+        predicted_level.astype(np.int64), _words(descriptors), finite, int(level_window), float(max_distance),
+        float(ratio))
     point, feature, _ = _one_to_one(point, feature, distance)
     return point, feature
 
 
-def _features_within(
-    feature_uv: np.ndarray, uv: np.ndarray, radius: np.ndarray, valid: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """All (point, feature) pairs with the feature within the point's radius, flattened without a Python
-    loop per point (the KD-tree returns one list per point; chain them in C)."""
-    points = np.flatnonzero(valid)
-    if len(points) == 0:
-        return _empty_match()
-    neighbours = cKDTree(feature_uv).query_ball_point(uv[points], radius[points], return_sorted=False)
-    lengths = np.fromiter(map(len, neighbours), dtype=int, count=len(points))
-    feature = np.fromiter(itertools.chain.from_iterable(neighbours), dtype=int, count=int(lengths.sum()))
-    return np.repeat(points, lengths), feature
+# Side of the grid's cells that _nearest_within buckets the features in (pixels): search radii are 3-60 px.
+GRID_CELL_PX = 16.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_within(feature_uv, feature_level, feature_words, usable, uv, radius, level, words, valid, level_window,
+                    max_distance, ratio):
+    """search_by_projection's candidates and choice in one pass: for each valid point, the usable features within
+    its radius (distance <= radius) whose level is within ``level_window`` of its own, found through a grid of the
+    features, and among them the nearest descriptor (``_nearest_update``). Returns (point, feature, distance) of
+    the points whose nearest passes ``_accepted``, by point."""
+    start, members, origin_u, origin_v, columns, rows = _feature_grid(feature_uv)
+    chosen = np.empty((len(uv), 3), np.int64)  # (point, feature, distance)
+    found = 0
+    for i in range(len(uv)):
+        if not valid[i]:
+            continue
+        u, v, r = uv[i, 0], uv[i, 1], radius[i]
+        first_col, last_col = _cell_span(u - r - origin_u, u + r - origin_u, columns)
+        first_row, last_row = _cell_span(v - r - origin_v, v + r - origin_v, rows)
+        nearest = NO_NEAREST
+        for row in range(first_row, last_row + 1):
+            for cell in range(row * columns + first_col, row * columns + last_col + 1):
+                for f in members[start[cell]:start[cell + 1]]:
+                    du, dv = feature_uv[f, 0] - u, feature_uv[f, 1] - v
+                    if usable[f] and abs(feature_level[f] - level[i]) <= level_window and du * du + dv * dv <= r * r:
+                        nearest = _nearest_update(nearest, _hamming_words(words[i], feature_words[f]), f)
+        if _accepted(nearest, max_distance, ratio):
+            chosen[found, 0], chosen[found, 1], chosen[found, 2] = i, nearest[1], nearest[0]
+            found += 1
+    return chosen[:found, 0], chosen[:found, 1], chosen[:found, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _feature_grid(feature_uv):
+    """The features bucketed in cells of GRID_CELL_PX from their smallest (u, v): (start, members, origin_u,
+    origin_v, columns, rows); cell c (row-major) holds ``members[start[c]:start[c + 1]]``, in index order."""
+    origin_u, origin_v = feature_uv[:, 0].min(), feature_uv[:, 1].min()
+    columns = int((feature_uv[:, 0].max() - origin_u) // GRID_CELL_PX) + 1
+    rows = int((feature_uv[:, 1].max() - origin_v) // GRID_CELL_PX) + 1
+    cell = np.empty(len(feature_uv), np.int64)
+    start = np.zeros(columns * rows + 1, np.int64)
+    for f in range(len(feature_uv)):
+        cell[f] = int((feature_uv[f, 1] - origin_v) // GRID_CELL_PX) * columns + int(
+            (feature_uv[f, 0] - origin_u) // GRID_CELL_PX)
+        start[cell[f] + 1] += 1
+    for c in range(columns * rows):
+        start[c + 1] += start[c]
+    members = np.empty(len(feature_uv), np.int64)
+    filled = start[:-1].copy()
+    for f in range(len(feature_uv)):
+        members[filled[cell[f]]] = f
+        filled[cell[f]] += 1
+    return start, members, origin_u, origin_v, columns, rows
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_span(low, high, count):
+    """The first and last of ``count`` cells that [low, high] (pixels from the grid's origin) overlaps; first > last
+    where none."""
+    first = max(int(np.floor(low / GRID_CELL_PX)), 0)
+    last = min(int(np.floor(high / GRID_CELL_PX)), count - 1)
+    return first, last
+
+
+# The running choice of _nearest_update before any candidate: (distance, target, second distance).
+NO_NEAREST = (DESCRIPTOR_BITS + 1, -1, DESCRIPTOR_BITS + 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_update(nearest, distance, target):
+    """One more candidate for the running (distance, target, second distance): the nearest descriptor, ties to the
+    lower target index, and the second smallest distance among all candidates (the ratio test's)."""
+    best, best_target, second = nearest
+    if distance < best or (distance == best and target < best_target):
+        return distance, target, best
+    return best, best_target, min(second, distance)
+
+
+@numba.njit(cache=True, nogil=True)
+def _accepted(nearest, max_distance, ratio):
+    """Whether a running choice is a match: the nearest within ``max_distance`` and below ``ratio`` times the second
+    nearest (Lowe's test; a lone candidate passes, as ORB-SLAM2's second best starts at the largest distance)."""
+    best, target, second = nearest
+    return target >= 0 and best <= max_distance and (second > DESCRIPTOR_BITS or best < ratio * second)
+
+
+@numba.njit(cache=True, nogil=True)
+def _hamming_words(a, b):
+    """Hamming distance of two descriptors as (4,) uint64 words (SWAR popcount)."""
+    total = 0
+    for k in range(len(a)):
+        x = a[k] ^ b[k]
+        x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+        x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+        x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+        total += int((x * np.uint64(0x0101010101010101)) >> np.uint64(56))
+    return total
 
 
 # ------------------------------------------------------------------------------------------- epipolar
@@ -338,22 +377,56 @@ def search_epipolar(
     if len(index_a) == 0 or len(index_b) == 0:
         return _empty_match()
     threshold_b = CHI2_ONE_DOF_95 * sigma2[features_b.level]  # per feature of b
-    if nodes_a is not None and nodes_b is not None:
-        i, j = _pairs_with_same_key(np.asarray(nodes_a)[index_a], np.asarray(nodes_b)[index_b])
-        i, j = index_a[i], index_b[j]
-        near = epipolar_distance_squared(F_ba, features_a.uv[i], features_b.uv[j]) < threshold_b[j]
-        i, j = i[near], j[near]
-    else:  # every candidate pair: the distances to the (unit-normal) lines as one (n_a, n_b) matrix
-        line = np.column_stack([features_a.uv[index_a], np.ones(len(index_a))]) @ np.asarray(F_ba, float).T
-        line /= np.maximum(np.linalg.norm(line[:, :2], axis=1, keepdims=True), np.finfo(float).tiny)
-        distance_to_line = line[:, :2] @ features_b.uv[index_b].T
-        distance_to_line += line[:, 2:]
-        np.abs(distance_to_line, out=distance_to_line)
-        near_a, near_b = np.nonzero(distance_to_line < np.sqrt(threshold_b[index_b]))
-        i, j = index_a[near_a], index_b[near_b]
-    distance = hamming_rows(features_a.descriptors[i], features_b.descriptors[j])
-    i, j, distance = _one_to_one(*_best_per_query(i, j, distance, max_distance, ratio))
+    lines = np.column_stack([features_a.uv[index_a], np.ones(len(index_a))]) @ np.asarray(F_ba, float).T
+    if nodes_a is None or nodes_b is None:  # every candidate pair: one node for all
+        nodes_a, nodes_b = np.zeros(len(features_a), np.int64), np.zeros(len(features_b), np.int64)
+    i, j = _nearest_sharing_node(features_a, index_a, nodes_a, features_b, index_b, nodes_b, lines, threshold_b,
+                                 max_distance, ratio)
     return _keep_consistent_rotation(i, j, features_a.angle, features_b.angle, check_orientation)
+
+
+def _nearest_sharing_node(features_a, index_a, nodes_a, features_b, index_b, nodes_b, lines, threshold_b,
+                          max_distance, ratio) -> tuple[np.ndarray, np.ndarray]:
+    """For each feature ``index_a[k]``: the nearest descriptor among the features of ``index_b`` in its vocabulary
+    node (and, with ``lines``, within ``threshold_b`` squared pixels of its epipolar line ``lines[k]`` in b),
+    passing the ratio test; then one-to-one. Returns (idx_a, idx_b)."""
+    index_b = index_b[np.argsort(np.asarray(nodes_b)[index_b], kind="stable")]
+    if lines is None:  # no line to be near: zero lines, met everywhere below an infinite threshold
+        lines, threshold_b = np.zeros((len(index_a), 3)), np.full(len(features_b), np.inf)
+    i, j, distance = _nearest_in_node(
+        index_a, lines, np.asarray(nodes_a, dtype=np.int64), _words(features_a.descriptors), index_b,
+        np.asarray(nodes_b, dtype=np.int64)[index_b], features_b.uv, threshold_b, _words(features_b.descriptors),
+        float(max_distance), float(ratio))
+    i, j, _ = _one_to_one(i, j, distance)
+    return i, j
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_in_node(index_a, lines, node_a, words_a, index_b, node_b, uv_b, threshold_b, words_b, max_distance,
+                     ratio):
+    """_nearest_sharing_node's candidates and choice in one pass: for each feature ``index_a[k]`` (epipolar line
+    ``lines[k]`` in b), the features of ``index_b`` (sorted by their nodes ``node_b``) in its node whose squared
+    distance to the line is below their ``threshold_b``, and among them the nearest descriptor
+    (``_nearest_update``). Returns (idx_a, idx_b, distance) of the features of a whose nearest passes ``_accepted``,
+    in a's order."""
+    chosen = np.empty((len(index_a), 3), np.int64)
+    found = 0
+    for k in range(len(index_a)):
+        i = index_a[k]
+        l0, l1, l2 = lines[k, 0], lines[k, 1], lines[k, 2]
+        norm_sq = max(l0 * l0 + l1 * l1, np.finfo(np.float64).tiny)
+        nearest = NO_NEAREST
+        first = np.searchsorted(node_b, node_a[i], side="left")
+        last = np.searchsorted(node_b, node_a[i], side="right")
+        for m in range(first, last):
+            j = index_b[m]
+            numerator = l0 * uv_b[j, 0] + l1 * uv_b[j, 1] + l2
+            if numerator * numerator / norm_sq < threshold_b[j]:
+                nearest = _nearest_update(nearest, _hamming_words(words_a[i], words_b[j]), j)
+        if _accepted(nearest, max_distance, ratio):
+            chosen[found, 0], chosen[found, 1], chosen[found, 2] = i, nearest[1], nearest[0]
+            found += 1
+    return chosen[:found, 0], chosen[:found, 1], chosen[:found, 2]
 
 
 __all__ = [
