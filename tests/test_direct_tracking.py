@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
 
@@ -201,25 +200,3 @@ def test_activation_pulls_inverse_depths_to_the_truth_from_five_percent_off(trac
     relative_error = np.abs(idepth[usable] - true_idepth[ready][usable]) / true_idepth[ready][usable]
     assert np.median(relative_error) < 0.01
     assert np.percentile(relative_error, 90) < 0.03
-
-
-@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs two of numba's threads to compare with one")
-def test_activation_does_not_depend_on_the_number_of_threads(traced_points):
-    """Each point's inverse depth is optimized on its own: one of numba's threads and two give the same depths to the
-    bit, and the same usable points."""
-    points, _, frames = traced_points
-    ready = np.flatnonzero(points.activatable(CONFIG.immature))
-    targets = ActivationTargets(
-        frames[0][0][0].camera, np.stack([frame[0].intensity for frame, _ in frames]), np.arange(len(frames))[::-1],
-        np.array([se3_inverse(T_world_frame) for _, T_world_frame in frames])[::-1], np.tile([1.0, 0.0], (5, 1)))
-    default_threads = numba.get_num_threads()
-    results = []
-    for threads in (1, 2):
-        numba.set_num_threads(threads)
-        try:
-            results.append(optimize_for_activation(points, ready, targets, CONFIG.immature))
-        finally:
-            numba.set_num_threads(default_threads)
-    assert results[0][1].sum() > 0.9 * len(ready)
-    np.testing.assert_array_equal(results[0][0], results[1][0])
-    np.testing.assert_array_equal(results[0][1], results[1][1])

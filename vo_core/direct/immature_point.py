@@ -362,16 +362,16 @@ def optimize_for_activation(
 CONVERGED_STEP_SHARE = 1e-4
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, image_index, R, t, factor, offset,
                              intrinsics, huber, first_outlier_slack, iterations, min_hessian, min_observations):
-    """optimize_for_activation's LM, point by point on numba's threads (each point its own: the result does not
-    depend on the threads). ``rays`` (n, 8, 3) are the host's K^-1 (u, v, 1) of the pattern pixels; target j is
-    ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host with the affine transfer (factor[j], offset[j]).
-    ``idepth`` is optimized in place; returns the usable mask."""
+    """optimize_for_activation's LM, point by point, on one thread (on numba's threads, its launches of one host's
+    few hundred points cost parking's run 1.2 s more CPU than they saved). ``rays`` (n, 8, 3) are the host's
+    K^-1 (u, v, 1) of the pattern pixels; target j is ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host
+    with the affine transfer (factor[j], offset[j]). ``idepth`` is optimized in place; returns the usable mask."""
     n, n_targets = len(idepth), len(image_index)
-    usable = _false_mask(n)
-    for i in numba.prange(n):
+    usable = np.zeros(n, np.bool_)
+    for i in range(n):
         in_bounds = np.ones(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
         inlier = np.zeros(n_targets, np.bool_)
         trial_inlier = np.zeros(n_targets, np.bool_)
@@ -401,11 +401,6 @@ def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, 
             running = usable[i] and not abs(step) < CONVERGED_STEP_SHARE * abs(idepth[i])
         usable[i] = usable[i] and np.isfinite(idepth[i]) and idepth[i] > 0 and inlier.sum() >= min_observations
     return usable
-
-
-@numba.njit(cache=True, nogil=True)
-def _false_mask(n):
-    return np.zeros(n, np.bool_)
 
 
 @numba.njit(cache=True, nogil=True)
