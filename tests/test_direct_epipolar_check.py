@@ -107,3 +107,26 @@ def test_a_witness_beside_mapping_that_agrees_lets_the_start_pass_once_it_answer
     answer.set()
     check.witness.result(timeout=60)
     assert check.witness_failure() is None and check.passed
+
+
+def test_a_closed_check_drops_the_pairs_it_has_not_started(room, monkeypatch):
+    """A start discarded before its last optimization closes its check (DirectOdometry._end_start_check): the pairs
+    ``prepare`` queued and no thread has started are cancelled, not measured for no one."""
+    started = threading.Event()
+    release = threading.Event()
+
+    def slow_measure(self, anchor_features, other_image, camera):
+        started.set()
+        release.wait(10.0)
+
+    monkeypatch.setattr(EpipolarCheck, "_measure_images", slow_measure)
+    check = EpipolarCheck(EpipolarCheckConfig())
+    keyframes = keyframes_at(room, KEYFRAMES)
+    check.prepare(keyframes, room[0].camera)
+    assert started.wait(10.0)
+    check.close()
+    release.set()
+    pairs = [check._images[(KEYFRAMES[0], other)] for other in KEYFRAMES[1:]]
+    cancelled = [pair.cancelled() for pair in pairs]
+    assert any(cancelled)  # at most one pair per thread had started: the rest are dropped
+    assert not cancelled[0]  # the first one queued was running

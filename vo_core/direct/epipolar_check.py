@@ -92,8 +92,7 @@ class EpipolarCheck:
         anchor, others = keyframes[0], keyframes[1:]
         measured = [self._images_of(anchor, other, camera) for other in others]
         pairs = [_pair_geometry(anchor, other, images.result()) for other, images in zip(others, measured)]
-        self._pool.shutdown(wait=False)  # its threads end once idle
-        self._pool = None
+        self.close()
         qualified = [pair for pair in pairs if pair is not None and pair.qualified(config)]
         disagreeing = [pair for pair in qualified if pair.disagrees(config)]
         details = {"epipolar_pairs": len(qualified), "epipolar_disagreeing": len(disagreeing)}
@@ -108,6 +107,13 @@ class EpipolarCheck:
                   f"motion (worst, frames {worst.frames[0]}-{worst.frames[1]}: rotation {worst.rotation_deg:.1f} deg, "
                   f"translation direction {worst.direction_deg:.0f} deg apart)")
         return reason, details
+
+    def close(self) -> None:
+        """Stop measuring: the pool's threads end once idle, and pairs not started yet are dropped (a start discarded
+        before its last optimization leaves them to no one)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
 
     def _images_of(self, anchor, other, camera: PinholeCamera) -> Future:
         if self._pool is None:

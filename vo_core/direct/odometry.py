@@ -463,7 +463,7 @@ class DirectOdometry:
         self.history = []
         self.initializer = self.make_initializer(failed_initializer)
         self._reset_rmse()
-        self.start_check, self.start_failure = None, None
+        self._end_start_check()
         self.scale_watch.reset()
 
     def restart_at(self, frame: DirectFrame, T_world_cam: np.ndarray, points_uv: np.ndarray,
@@ -484,7 +484,7 @@ class DirectOdometry:
         self.initializer = self.make_initializer(None)  # one that had started to replace a kept window
         self._reset_rmse()
         self.scale_watch.reset()  # a new window: nothing to compare its first keyframes with
-        self.start_check, self.start_failure = None, None  # the feature map's points, not an initializer's start
+        self._end_start_check()  # the feature map's points, not an initializer's start
         selection = self.selector.select(frame.pyramid, self.config.immature.density)
         keyframe.immature = ImmaturePoints.create(frame.pyramid, selection.uv, selection.kind, self.config.immature)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
@@ -531,6 +531,7 @@ class DirectOdometry:
                         _Tracked(T_world_cam, np.zeros(2), frame.timestamp)]
         self.state = _State.TRACKING
         method = self.initializer.name
+        self._end_start_check()
         if self.config.start_check.enabled:
             self.start_check = StartCheck(self.config.start_check, first.frame_index, frame.index, method)
             self.start_check.posed(frame.timestamp)
@@ -671,6 +672,12 @@ class DirectOdometry:
         if reading.jump:
             result.events.append(_event(EventKind.SCALE_JUMP, frame, {"keyframe": newest.frame_index,
                                                                        **reading.details()}))
+
+    def _end_start_check(self) -> None:
+        """The current start's check is over (its map goes, or another start replaces it)."""
+        if self.start_check is not None:
+            self.start_check.close()
+        self.start_check, self.start_failure = None, None
 
     def _check_start(self, report: WindowReport) -> None:
         """One more window optimization for the start on probation: it fails (``start_failure`` says why) or,

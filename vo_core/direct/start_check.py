@@ -65,6 +65,11 @@ class StartCheck:
         self.measures.update(measures)
         return reason
 
+    def close(self) -> None:
+        """The start's map goes (it failed, or gave way to another): its witness stops measuring."""
+        if self.epipolar is not None:
+            self.epipolar.close()
+
     def observe(self, report: WindowReport, keyframes: list) -> str | None:
         """One window optimization's outcome; returns why the start fails, or None."""
         parallax = self._parallax(keyframes)
