@@ -185,7 +185,8 @@ class Odometry:
 
     def _with_mapped_features(self, direct: MapSnapshot) -> MapSnapshot:
         """With mapping threads: the direct map with the feature map as its mapper last reported it (the feature
-        half's process is not asked: it may still be mapping, or starting)."""
+        half's process is not asked: it may still be mapping, or starting). The direct map is kept as the newest,
+        which the feature maps reported later join."""
         self.snapshots["direct"] = direct
         features = self.snapshots.get("features", MapSnapshot())
         return dataclasses.replace(direct, feature_points_world=features.feature_points_world,

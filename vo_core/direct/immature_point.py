@@ -345,13 +345,14 @@ def optimize_for_activation(
     idepth = np.array(points.idepth[index], dtype=float)
     if len(idepth) == 0 or len(targets.image_index) == 0:
         return idepth, np.zeros(len(idepth), dtype=bool)
-    pattern_uv = points.uv[index][:, None, :] + PATTERN[None]
-    rays = targets.camera.unproject(pattern_uv.reshape(-1, 2)).reshape(len(idepth), len(PATTERN), 3)
     camera = targets.camera
+    pattern_uv = points.uv[index][:, None, :] + PATTERN[None]
+    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(len(idepth), len(PATTERN), 3)
     usable = _optimize_inverse_depths(
         rays, idepth, points.color[index], points.weight[index] ** 2, points.energy_threshold[index], targets.images,
         targets.image_index, targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(),
-        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(), np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(),
+        np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
         float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
         float(config.min_idepth_hessian), int(config.activation_min_observations),
     )

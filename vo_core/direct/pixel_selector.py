@@ -125,7 +125,8 @@ class PixelSelector:
         for level, kind in enumerate(LEVEL_TYPES):
             cell = pot * kind
             weight = config.grad_downweight_per_level ** (level * (level + 1) // 2)  # 1, 0.75, 0.75^3 as DSO
-            # A random direction per cell spreads the gradient directions of the selected pixels.
+            # A random direction per cell spreads the gradient directions of the selected pixels. Drawn for every
+            # level, one the pyramid lacks included, so that the seed's later draws stay the same.
             angle = self.rng.uniform(0.0, np.pi, size=(height // cell, width // cell))
             if grad_sq[level] is None:  # a pyramid this short has no pixel of this type
                 continue
