@@ -61,6 +61,23 @@ def test_tracking_recovers_pose_and_brightness_from_a_few_pixels_off(pair, track
     assert result.rmse_after < 0.3 * result.rmse_before
 
 
+def test_coarse_levels_hold_each_pixel_once_and_the_finest_every_pattern_pixel(pair, tracker):
+    """Level 0: DSO's 8-pixel pattern of every point. Coarser: overlapping patterns meet in the same pixels, each one
+    residual, at the mean inverse depth of the points whose patterns cover it."""
+    _, reference, _, _, _ = pair
+    finest = tracker.levels[0]
+    assert len(finest.idepth) == 8 * len(finest.centre_idepth)
+    for level in range(1, len(tracker.levels)):
+        points = tracker.levels[level]
+        camera = reference[level].camera
+        pixels = np.round(camera.project(points.rays.astype(float))).astype(int)
+        assert len(np.unique(pixels, axis=0)) == len(pixels)
+        assert len(pixels) < 8 * len(points.centre_idepth)  # the patterns did overlap
+        # A pixel's inverse depth lies within the range of the point centres' around it.
+        assert points.idepth.min() >= points.centre_idepth.min() - 1e-6
+        assert points.idepth.max() <= points.centre_idepth.max() + 1e-6
+
+
 def test_tracking_from_far_off_fails_detectably(pair, tracker):
     _, _, current, _, T_true = pair
     good = tracker.track(current, T_true, np.zeros(2), None)
