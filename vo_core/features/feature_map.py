@@ -216,8 +216,11 @@ class FeatureMap:
 
     def observation_counts(self, point_ids: np.ndarray) -> np.ndarray:
         """How many keyframes observe each of ``point_ids``."""
-        observed = self.observations().point
-        return np.bincount(observed, minlength=len(self.points))[np.asarray(point_ids, np.int64)]
+        return self.observers_per_point()[np.asarray(point_ids, np.int64)]
+
+    def observers_per_point(self) -> np.ndarray:
+        """(points,) how many keyframes observe each point (by id; dead points none)."""
+        return np.bincount(self.observations().point, minlength=len(self.points))
 
     def covisibility(self, frame_index: int) -> dict[int, int]:
         """Weights of the covisibility graph's edges at a keyframe: other keyframe -> shared points."""

@@ -317,13 +317,17 @@ class FeatureMapper:
         keyframes is removed, once its direct twin has left the window."""
         maintenance = self.config.maintenance
         culled = []
+        counts = None  # every point's observers, counted once until a keyframe leaves
         for frame_index in [k.frame_index for k in feature_map.keyframes.values() if not k.in_direct_window]:
             keyframe = feature_map.keyframes[frame_index]
             point_ids = keyframe.point_ids[keyframe.point_ids >= 0]
             if len(point_ids) == 0:
                 continue
-            others = feature_map.observation_counts(point_ids) - 1
+            if counts is None:
+                counts = feature_map.observers_per_point()
+            others = counts[point_ids] - 1
             if np.mean(others >= maintenance.redundant_observers) >= maintenance.redundancy:
                 feature_map.remove_keyframe(frame_index)
                 culled.append(frame_index)
+                counts = None  # its views are gone, and the points it leaves with one view die
         return culled
