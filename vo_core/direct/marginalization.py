@@ -18,9 +18,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
-from vo_core.geometry.lie import se3_inverse, se3_log
+from vo_core.geometry.lie import se3_log_compiled
 
 PARAMS_PER_KEYFRAME = 8
 
@@ -40,11 +41,11 @@ class MarginalizationPrior:
     def deltas(self, frame_ids: list[int], poses: list[np.ndarray], affines: list[np.ndarray]) -> np.ndarray:
         """(K, 8) increments of the window's keyframes from their linearization points (zero without one)."""
         out = np.zeros((len(frame_ids), PARAMS_PER_KEYFRAME))
-        for i, (frame, T, ab) in enumerate(zip(frame_ids, poses, affines)):
-            if frame in self.x0:
-                T0, ab0 = self.x0[frame]
-                out[i, :6] = se3_log(T @ se3_inverse(T0))
-                out[i, 6:] = ab - ab0
+        rows = [i for i, frame in enumerate(frame_ids) if frame in self.x0]
+        if rows:
+            x0 = [self.x0[frame_ids[i]] for i in rows]
+            out[rows, :6] = _pose_increments(np.array([poses[i] for i in rows]), np.array([T0 for T0, _ in x0]))
+            out[rows, 6:] = np.array([affines[i] for i in rows]) - np.array([ab0 for _, ab0 in x0])
         return out
 
     def _window_indices(self, frame_ids: list[int]) -> np.ndarray:
@@ -90,3 +91,16 @@ class MarginalizationPrior:
         b_new = b_total[kept] - coupling @ b_total[gone]
         remaining = [frame for i, frame in enumerate(frame_ids) if i != leaving]
         return MarginalizationPrior(remaining, 0.5 * (H_new + H_new.T), b_new, {f: x0[f] for f in remaining})
+
+
+@numba.njit(cache=True, nogil=True)
+def _pose_increments(T, T0):
+    """(K, 6) log(T_k T0_k^-1): each keyframe's left increment in the world frame from its linearization point."""
+    increments = np.empty((len(T), 6))
+    T0_inverse = np.eye(4)
+    for k in range(len(T)):
+        R_t = np.ascontiguousarray(T0[k, :3, :3].T)
+        T0_inverse[:3, :3] = R_t
+        T0_inverse[:3, 3] = -(R_t @ np.ascontiguousarray(T0[k, :3, 3]))
+        increments[k] = se3_log_compiled(np.ascontiguousarray(T[k]) @ T0_inverse)
+    return increments

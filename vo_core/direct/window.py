@@ -32,6 +32,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -40,7 +41,7 @@ from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.photometric_kernels import window_linearization
-from vo_core.geometry.lie import se3_adjoint, se3_exp, se3_inverse
+from vo_core.geometry.lie import se3_adjoint_compiled, se3_exp
 
 PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
 # The window's dense products are small (8K x P with P ~ 2000): threaded BLAS gains nothing there, and when the
@@ -191,18 +192,16 @@ class WindowOptimizer:
         # they are now.
         first_estimates = np.array([prior.x0[k.frame_index][0] if k.frame_index in prior.x0 else T
                                     for k, T in zip(keyframes, poses)])
-        T_target_host = _relative_poses(np.array(poses))
-        T0_target_host = _relative_poses(first_estimates)
-        adjoint0 = np.array([se3_adjoint(se3_inverse(T0)) for T0 in first_estimates])
+        R, t = _relative_poses(np.array(poses))
+        R0, t0 = _relative_poses(first_estimates)
+        adjoint0 = _inverse_adjoints(first_estimates)
         factor, offset = relative_affines([k.exposure for k in keyframes], np.array(affines, float))
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
         camera = keyframes[0].camera
         with _PARALLEL_KERNEL:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
-                points.images, np.ascontiguousarray(T_target_host[..., :3, :3]),
-                np.ascontiguousarray(T_target_host[..., :3, 3]), np.ascontiguousarray(T0_target_host[..., :3, :3]),
-                np.ascontiguousarray(T0_target_host[..., :3, 3]), adjoint0, factor, offset,
+                points.images, R, t, R0, t0, adjoint0, factor, offset,
                 np.array([ab[1] for ab in affines], float), active,
                 np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, self.huber,
                 self.outlier_energy, self.weight_component,
@@ -292,7 +291,33 @@ def _scale_direction(poses: list) -> np.ndarray:
     return direction
 
 
-def _relative_poses(T_world_cam: np.ndarray) -> np.ndarray:
-    """(K, K, 4, 4) T_target_host = T_world_target^-1 T_world_host, indexed [host, target]."""
-    T_cam_world = np.array([se3_inverse(T) for T in T_world_cam])
-    return np.einsum("tij,hjk->htik", T_cam_world, T_world_cam)
+@numba.njit(cache=True, nogil=True)
+def _relative_poses(T_world_cam):
+    """T_target_host = T_world_target^-1 T_world_host of every pair, indexed [host, target], as its rotation
+    (K, K, 3, 3) and translation (K, K, 3): R_target^T R_host and R_target^T (t_host - t_target)."""
+    n = len(T_world_cam)
+    R = np.empty((n, n, 3, 3))
+    t = np.empty((n, n, 3))
+    for h in range(n):
+        for tg in range(n):
+            for i in range(3):
+                for j in range(3):
+                    R[h, tg, i, j] = (T_world_cam[tg, 0, i] * T_world_cam[h, 0, j] + T_world_cam[tg, 1, i] *
+                                      T_world_cam[h, 1, j] + T_world_cam[tg, 2, i] * T_world_cam[h, 2, j])
+                t[h, tg, i] = (T_world_cam[tg, 0, i] * (T_world_cam[h, 0, 3] - T_world_cam[tg, 0, 3]) +
+                               T_world_cam[tg, 1, i] * (T_world_cam[h, 1, 3] - T_world_cam[tg, 1, 3]) +
+                               T_world_cam[tg, 2, i] * (T_world_cam[h, 2, 3] - T_world_cam[tg, 2, 3]))
+    return R, t
+
+
+@numba.njit(cache=True, nogil=True)
+def _inverse_adjoints(T_world_cam):
+    """(K, 6, 6) Ad(T_cam_world) of each keyframe."""
+    adjoints = np.empty((len(T_world_cam), 6, 6))
+    T_cam_world = np.eye(4)
+    for k in range(len(T_world_cam)):
+        R_t = np.ascontiguousarray(T_world_cam[k, :3, :3].T)
+        T_cam_world[:3, :3] = R_t
+        T_cam_world[:3, 3] = -(R_t @ np.ascontiguousarray(T_world_cam[k, :3, 3]))
+        adjoints[k] = se3_adjoint_compiled(T_cam_world)
+    return adjoints

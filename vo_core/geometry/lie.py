@@ -55,13 +55,17 @@ def _so3_exp(w):
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation vector of R, stable near the identity and near a rotation of pi."""
-    R = np.asarray(R, dtype=float)
+    return _so3_log(np.ascontiguousarray(R, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True)
+def _so3_log(R):
     # Rodrigues: (R - R^T)/2 = sin(theta) [a], trace(R) = 1 + 2 cos(theta). atan2 keeps full precision
     # at both ends of [0, pi], where arccos of the trace loses half the digits.
-    sin_axis = 0.5 * vee(R - R.T)
-    sin_theta = float(np.linalg.norm(sin_axis))
-    cos_theta = 0.5 * (np.trace(R) - 1.0)
-    theta = float(np.arctan2(sin_theta, cos_theta))
+    sin_axis = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin_theta = np.sqrt(sin_axis[0] ** 2 + sin_axis[1] ** 2 + sin_axis[2] ** 2)
+    cos_theta = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    theta = np.arctan2(sin_theta, cos_theta)
     if theta < 1e-6:
         # theta / sin(theta) = 1 + theta^2 / 6 + O(theta^4).
         return sin_axis * (1.0 + theta**2 / 6.0)
@@ -69,11 +73,11 @@ def so3_log(R: np.ndarray) -> np.ndarray:
         # Near pi, sin(theta) vanishes; take the axis from the symmetric part instead:
         # (R + R^T)/2 = cos(theta) I + (1 - cos(theta)) a a^T.
         outer = (0.5 * (R + R.T) - cos_theta * np.eye(3)) / (1.0 - cos_theta)
-        axis_index = int(np.argmax(np.diag(outer)))
+        axis_index = np.argmax(np.diag(outer))
         axis = outer[:, axis_index] / np.sqrt(outer[axis_index, axis_index])
-        axis /= np.linalg.norm(axis)
+        axis = axis / np.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2)
         # Fix the sign with the (small) antisymmetric part so that log(exp(w)) = w just below pi.
-        if axis @ sin_axis < 0.0:
+        if axis[0] * sin_axis[0] + axis[1] * sin_axis[1] + axis[2] * sin_axis[2] < 0.0:
             axis = -axis
         return axis * theta
     return sin_axis * (theta / sin_theta)
@@ -138,9 +142,17 @@ def se3_exp_compiled(xi):
 
 def se3_log(T: np.ndarray) -> np.ndarray:
     """Inverse of se3_exp."""
-    w = so3_log(T[:3, :3])
-    v = np.linalg.solve(so3_left_jacobian(w), T[:3, 3])
-    return np.concatenate([v, w])
+    return se3_log_compiled(np.ascontiguousarray(T, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True)
+def se3_log_compiled(T):
+    """se3_log compiled (the window's marginalization prior takes one per keyframe at every linearization)."""
+    w = _so3_log(np.ascontiguousarray(T[:3, :3]))
+    xi = np.empty(6)
+    xi[:3] = np.linalg.solve(_so3_left_jacobian(w), np.ascontiguousarray(T[:3, 3]))
+    xi[3:] = w
+    return xi
 
 
 def se3_inverse(T: np.ndarray) -> np.ndarray:
@@ -151,10 +163,15 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
 
 def se3_adjoint(T: np.ndarray) -> np.ndarray:
     """Adj(T) with T exp(xi) T^-1 = exp(Adj(T) xi), for xi = (v, w): [[R, [t]x R], [0, R]]."""
-    R, t = T[:3, :3], T[:3, 3]
+    return se3_adjoint_compiled(np.ascontiguousarray(T, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True)
+def se3_adjoint_compiled(T):
+    R = np.ascontiguousarray(T[:3, :3])
     A = np.zeros((6, 6))
     A[:3, :3] = R
-    A[:3, 3:] = hat(t) @ R
+    A[:3, 3:] = _hat(np.ascontiguousarray(T[:3, 3])) @ R
     A[3:, 3:] = R
     return A
 
