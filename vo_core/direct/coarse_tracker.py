@@ -69,9 +69,13 @@ def _merged_per_pixel(uv: np.ndarray, idepth: np.ndarray, width: int) -> tuple[n
         return uv, idepth
     pixel = np.round(uv).astype(np.int64)
     key = pixel[:, 1] * (width + 1) + pixel[:, 0]
-    unique, inverse = np.unique(key, return_inverse=True)
-    mean_idepth = np.bincount(inverse, weights=idepth) / np.bincount(inverse)
-    return np.stack([unique % (width + 1), unique // (width + 1)], axis=1).astype(float), mean_idepth
+    first = key.min()  # bins over the keys' range, counted in one pass (a sort took 1 ms a level, on tracking's wait)
+    counts = np.bincount(key - first)
+    sums = np.bincount(key - first, weights=idepth)
+    occupied = np.flatnonzero(counts)
+    unique = occupied + first
+    return (np.stack([unique % (width + 1), unique // (width + 1)], axis=1).astype(float),
+            sums[occupied] / counts[occupied])
 
 
 def huber_weight(residual: np.ndarray, threshold: float) -> np.ndarray:
