@@ -266,3 +266,27 @@ def test_the_marginalization_prior_stays_symmetric_positive_semidefinite(with_wi
     np.testing.assert_allclose(prior.H, prior.H.T, atol=1e-9 * np.abs(prior.H).max())
     eigenvalues = np.linalg.eigvalsh(prior.H)
     assert eigenvalues.min() > -1e-9 * eigenvalues.max()
+
+
+def test_window_images_copy_each_keyframe_once_and_reuse_the_slots_of_those_that_left():
+    """Keyframe k's intensity is store[slots[k]] whatever the window's order; a keyframe keeps its slot while it
+    stays, and one that left frees its slot for the next newcomer (no copy of the whole window per keyframe)."""
+
+    class _Level:
+        def __init__(self, value):
+            self.intensity = np.full((4, 6), value, np.float32)
+
+    class _Keyframe:
+        def __init__(self, value):
+            self.pyramid = [_Level(value)]
+
+    window = optimizer()
+    a, b, c, d = (_Keyframe(v) for v in (1.0, 2.0, 3.0, 4.0))
+    store, slots = window.window_images([a, b, c])
+    assert [store[s][0, 0] for s in slots] == [1.0, 2.0, 3.0]
+    slots_before = dict(zip("abc", slots.tolist()))
+    store[slots_before["b"]] = -1.0  # were b copied again, this would be undone
+    store, slots = window.window_images([b, c, d])  # a left, d came
+    assert slots.tolist()[:2] == [slots_before["b"], slots_before["c"]]
+    assert slots[2] == slots_before["a"] and len(store) == 3
+    assert [store[s][0, 0] for s in slots] == [-1.0, 3.0, 4.0]

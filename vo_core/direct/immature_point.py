@@ -280,10 +280,11 @@ def _refine_on_line(packed, start_u, start_v, dx, dy, rotated, color, weight, fa
 @dataclass
 class ActivationTargets:
     """The other keyframes of the window as seen from a host: their level-0 intensities, poses and brightness
-    transfers. The images are the window's stack, shared by its hosts; target j is ``images[image_index[j]]``."""
+    transfers. The images are the window's (WindowOptimizer.window_images), shared by its hosts; target j is
+    ``images[image_index[j]]``."""
 
     camera: PinholeCamera
-    images: np.ndarray  # (K, H, W) float32
+    images: np.ndarray  # (S, H, W) float32
     image_index: np.ndarray  # (T,) int64
     T_target_host: np.ndarray  # (T, 4, 4)
     affine: np.ndarray  # (T, 2) (factor, offset) predicting target intensities from host intensities

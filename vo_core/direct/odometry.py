@@ -774,7 +774,7 @@ class DirectOdometry:
                 free[pixel[inside, 1], pixel[inside, 0]] = 0
         distance = cv2.distanceTransform(free, cv2.DIST_L1, 3) if not free.all() else np.full(free.shape, np.inf)
         window = self.keyframes + [new_keyframe]  # the keyframes the window optimization takes next, in its order
-        images = self.window_optimizer.stacked_images(window)
+        images = self.window_optimizer.window_images(window)
         spacing = max(self.min_activation_distance, 1.0)
         grid_w = int(np.ceil(half[0] / spacing))
         taken: set[int] = set()
@@ -822,12 +822,14 @@ class DirectOdometry:
         low, high = ACTIVATION_DISTANCE_RANGE
         self.min_activation_distance = float(np.clip(self.min_activation_distance + step, low, high))
 
-    def _activation_targets(self, host: Keyframe, window: list[Keyframe], images: np.ndarray) -> ActivationTargets:
+    def _activation_targets(self, host: Keyframe, window: list[Keyframe],
+                            images: tuple[np.ndarray, np.ndarray]) -> ActivationTargets:
         """Every other keyframe of the ``window`` (the new one included), as seen from ``host``; ``images`` are the
-        window's stacked intensities."""
+        window's intensities in their slots (WindowOptimizer.window_images)."""
         others = [i for i, k in enumerate(window) if k is not host]
+        store, slots = images
         return ActivationTargets(
-            self.camera, images, np.array(others, dtype=np.int64),
+            self.camera, store, slots[others],
             np.array([se3_inverse(window[i].T_world_cam) @ host.T_world_cam for i in others]),
             np.array([relative_affine(host.exposure, window[i].exposure, host.affine, window[i].affine)
                       for i in others], dtype=float),

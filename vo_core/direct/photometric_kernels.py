@@ -315,7 +315,7 @@ def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, 
 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
-def window_linearization(rays, center_rays, idepth, color, host_weight, host_start, images, R, t, R0, t0,
+def window_linearization(rays, center_rays, idepth, color, host_weight, host_start, images, image_slots, R, t, R0, t0,
                          adjoint0, factor, offset, host_b, active, intrinsics, border, huber, outlier_energy,
                          weight_component):
     """The Gauss-Newton system of the window's photometric energy: every point of every active host keyframe in
@@ -324,7 +324,7 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
 
     Points: pattern rays ``rays[i, k]`` (K^-1 (u, v, 1) in the host), ``center_rays[i]``, inverse depths,
     host intensities ``color[i, k]``, host pattern weights ``host_weight[i, k]``; the points of host h are
-    ``host_start[h]:host_start[h + 1]``. Keyframe pairs are indexed [host, target]: (R, t) is T_target_host,
+    ``host_start[h]:host_start[h + 1]``. Keyframe k's level-0 intensity is ``images[image_slots[k]]``. Keyframe pairs are indexed [host, target]: (R, t) is T_target_host,
     (R0, t0) its first estimate, ``factor``/``offset`` the affine transfer (affine.py), ``adjoint0[target]`` is
     Ad(T0_target_world); ``host_b[h]`` is b of the host; only hosts with ``active[h]`` are linearized.
 
@@ -354,8 +354,8 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
                                                                                         len(blocks))
     for j in numba.prange(len(blocks)):
         block_energy[j] = _linearize_points(
-            blocks[j, 0], blocks[j, 1], blocks[j, 2], rays, center_rays, idepth, color, host_weight, images, R, t,
-            R0, t0, adjoint0, factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component,
+            blocks[j, 0], blocks[j, 1], blocks[j, 2], rays, center_rays, idepth, color, host_weight, images,
+            image_slots, R, t, R0, t0, adjoint0, factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component,
             status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
     energy, H_kk, b_k = _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
     return energy, status, H_kk, b_k, H_pk, H_pp, b_p
@@ -419,14 +419,14 @@ def _point_blocks(host_start, active):
 
 
 @numba.njit(cache=True, nogil=True)
-def _linearize_points(h, first, end, rays, center_rays, idepth, color, host_weight, images, R, t, R0, t0, adjoint0,
-                      factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component, status,
+def _linearize_points(h, first, end, rays, center_rays, idepth, color, host_weight, images, image_slots, R, t, R0, t0,
+                      adjoint0, factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component, status,
                       H_pk, H_pp, b_p, M_block, m_block):
     """window_linearization's work for points first..end-1 of host keyframe h: their rows of status, H_pk, H_pp and
     b_p, and in ``M_block[tg]`` / ``m_block[tg]`` their part of each target's local 9-parameter system (upper
     triangle). Returns their energy."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    n_kf = len(images)
+    n_kf = len(image_slots)
     pattern = color.shape[1]
     P = np.empty(6)
     Q = np.empty(6)
@@ -439,7 +439,7 @@ def _linearize_points(h, first, end, rays, center_rays, idepth, color, host_weig
     for tg in range(n_kf):
         if tg == h:
             continue
-        image = images[tg]
+        image = images[image_slots[tg]]
         height, width = image.shape[0], image.shape[1]
         Rc, tc, Rf, tf = R[h, tg], t[h, tg], R0[h, tg], t0[h, tg]
         pair_factor, pair_offset = factor[h, tg], offset[h, tg]

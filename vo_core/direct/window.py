@@ -64,9 +64,10 @@ class _WindowPoints:
     color: np.ndarray  # (P, 8) host intensities
     weight: np.ndarray  # (P, 8) host gradient weights sqrt(c / (c + |grad|^2))
     host_start: np.ndarray  # (K + 1,) the points of keyframe h are host_start[h]:host_start[h + 1]
-    # (K, H, W) each keyframe's level-0 intensity (the kernel takes the gradients from it); stacked, not a numba typed
-    # list, whose first construction in a process costs 0.6 s (a copy of 8 images costs 0.4 ms).
+    # (S, H, W) the window's level-0 intensities in their slots (the kernel takes the gradients from them), keyframe k
+    # in images[image_slots[k]]: one array, not a numba typed list, whose first construction in a process costs 0.6 s.
     images: np.ndarray
+    image_slots: np.ndarray  # (K,) int64
 
 
 @dataclass
@@ -102,9 +103,10 @@ class WindowOptimizer:
         self.huber = huber_threshold
         self.outlier_energy = len(PATTERN) * outlier_threshold
         self.weight_component = outlier_sum_component
-        # The last stacked keyframes and their images: a new keyframe's activation, the window optimization and the
-        # marginalization that follows read the same keyframes in the same order (KITTI's 8 images: 3 ms a stack).
-        self._stacked: tuple[list, np.ndarray] | None = None
+        # The window's images, each copied once into a slot when its keyframe joins (window_images): stacking the
+        # whole window again at every keyframe cost 1.4 ms on parking, 3 ms on KITTI, while tracking waited.
+        self._image_store: np.ndarray | None = None
+        self._slot_holders: list = []  # the keyframe whose image each slot holds, None where free
 
     @_BLAS.wrap(limits=1, user_api="blas")
     def optimize(self, keyframes: list, prior: MarginalizationPrior) -> WindowReport:
@@ -159,14 +161,27 @@ class WindowOptimizer:
 
     # ------------------------------------------------------------------------------------ linearization
 
-    def stacked_images(self, keyframes: list) -> np.ndarray:
-        """(K, H, W) the keyframes' level-0 intensities, stacked once for these very keyframes in this order."""
-        stacked = self._stacked
-        same = stacked is not None and len(stacked[0]) == len(keyframes) and all(
-            a is b for a, b in zip(stacked[0], keyframes))
-        if not same:
-            stacked = self._stacked = (list(keyframes), np.stack([k.pyramid[0].intensity for k in keyframes]))
-        return stacked[1]
+    def window_images(self, keyframes: list) -> tuple[np.ndarray, np.ndarray]:
+        """(store (S, H, W), slots (K,)): keyframe k's level-0 intensity is store[slots[k]]. A keyframe's image is
+        copied into a free slot when it first comes; the slots of keyframes no longer given are free again."""
+        intensity = keyframes[0].pyramid[0].intensity
+        if self._image_store is None or self._image_store[0].shape != intensity.shape:
+            self._image_store, self._slot_holders = np.empty((0, *intensity.shape), intensity.dtype), []
+        given = {id(k) for k in keyframes}
+        holders = [h if h is not None and id(h) in given else None for h in self._slot_holders]
+        slots = np.empty(len(keyframes), np.int64)
+        for i, keyframe in enumerate(keyframes):
+            slot = next((j for j, h in enumerate(holders) if h is keyframe), None)
+            if slot is None:
+                slot = next((j for j, h in enumerate(holders) if h is None), len(holders))
+                if slot == len(holders):
+                    holders.append(None)
+                    self._image_store = np.concatenate([self._image_store, intensity[None]])
+                self._image_store[slot] = keyframe.pyramid[0].intensity
+                holders[slot] = keyframe
+            slots[i] = slot
+        self._slot_holders = holders
+        return self._image_store, slots
 
     def _window_points(self, keyframes: list) -> _WindowPoints:
         counts = [len(k.active_idepth) for k in keyframes]
@@ -179,7 +194,7 @@ class WindowOptimizer:
             np.concatenate([k.active_color for k in keyframes]),
             np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-            self.stacked_images(keyframes),
+            *self.window_images(keyframes),
         )
 
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
@@ -201,7 +216,7 @@ class WindowOptimizer:
         with _PARALLEL_KERNEL:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
-                points.images, R, t, R0, t0, adjoint0, factor, offset,
+                points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
                 np.array([ab[1] for ab in affines], float), active,
                 np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, self.huber,
                 self.outlier_energy, self.weight_component,
