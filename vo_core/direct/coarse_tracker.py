@@ -9,8 +9,9 @@ Every reference point is DSO's 8-pixel pattern around a pixel of the reference k
 warped with the point's inverse depth. On coarser levels, points falling into the same pixel are merged
 (their inverse depths averaged), as DSO's makeCoarseDepthL0 does, and so are the pattern pixels that neighbouring
 points share there: each pixel is one residual (teddy's level 3: 2,380 instead of 8,568, where the 31 guesses of a
-hard frame spend their time; the same ATE over three seeds on teddy, KITTI and parking). The per-pixel loops (warp, bilinear lookup,
-Huber residual, normal equations) and each level's optimization loop are compiled kernels (photometric_kernels.py).
+hard frame spend their time; the same ATE over three seeds on teddy, KITTI and parking). The per-pixel loops (warp,
+bilinear lookup, Huber residual, normal equations) and each level's optimization loop are compiled kernels
+(photometric_kernels.py).
 """
 
 from __future__ import annotations
