@@ -165,7 +165,8 @@ class WindowOptimizer:
         """(store (S, H, W), slots (K,)): keyframe k's level-0 intensity is store[slots[k]]. A keyframe's image is
         copied into a free slot when it first comes; the slots of keyframes no longer given are free again."""
         intensity = keyframes[0].pyramid[0].intensity
-        if self._image_store is None or self._image_store[0].shape != intensity.shape:
+        store = self._image_store
+        if store is None or store.shape[1:] != intensity.shape or store.dtype != intensity.dtype:
             self._image_store, self._slot_holders = np.empty((0, *intensity.shape), intensity.dtype), []
         given = {id(k) for k in keyframes}
         holders = [h if h is not None and id(h) in given else None for h in self._slot_holders]
