@@ -139,7 +139,7 @@ class CoarseTracker:
             color=color.astype(np.float32),
             centre_rays=camera.unproject(uv_level),
             centre_idepth=idepth,
-            intrinsics=np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+            intrinsics=camera.intrinsics,
         )
 
     # ------------------------------------------------------------------------------------ residuals

@@ -352,8 +352,7 @@ def optimize_for_activation(
     usable = _optimize_inverse_depths(
         rays, idepth, points.color[index], points.weight[index] ** 2, points.energy_threshold[index], targets.images,
         targets.image_index, targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(),
-        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(),
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(), camera.intrinsics,
         float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
         float(config.min_idepth_hessian), int(config.activation_min_observations),
     )

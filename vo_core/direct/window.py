@@ -213,14 +213,12 @@ class WindowOptimizer:
         adjoint0 = _inverse_adjoints(first_estimates)
         factor, offset = relative_affines([k.exposure for k in keyframes], np.array(affines, float))
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
-        camera = keyframes[0].camera
         with _PARALLEL_KERNEL:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
-                np.array([ab[1] for ab in affines], float), active,
-                np.array([camera.fx, camera.fy, camera.cx, camera.cy]), self.config.border, self.huber,
-                self.outlier_energy, self.weight_component,
+                np.array([ab[1] for ab in affines], float), active, keyframes[0].camera.intrinsics,
+                self.config.border, self.huber, self.outlier_energy, self.weight_component,
             )
         if start is not None:
             left_view = (status == POINT_OUT) & (start.status == POINT_IN)

@@ -44,6 +44,9 @@ class CameraModel(Protocol):
     @property
     def K(self) -> np.ndarray: ...
 
+    @property
+    def intrinsics(self) -> np.ndarray: ...
+
     def project(self, points_cam: np.ndarray) -> np.ndarray: ...
 
     def unproject(self, uv: np.ndarray) -> np.ndarray: ...
@@ -61,6 +64,11 @@ class PinholeCamera:
     @property
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        """(fx, fy, cx, cy), as the compiled kernels take them."""
+        return np.array([self.fx, self.fy, self.cx, self.cy])
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         points_cam = np.asarray(points_cam, dtype=float)
@@ -126,6 +134,10 @@ class DistortedCamera:
     @property
     def K(self) -> np.ndarray:
         return self.pinhole.K
+
+    @property
+    def intrinsics(self) -> np.ndarray:
+        return self.pinhole.intrinsics
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         distorted = self._distort_rays(np.asarray(points_cam, dtype=float))

@@ -76,7 +76,7 @@ def refine_points(
     inlier, errors_px, in_front = _refine(
         points, first_obs, np.asarray(obs_pose, np.int64)[order], np.asarray(obs_uv, float).reshape(-1, 2)[order],
         level_information(np.asarray(obs_level)[order], scale_factor), R_cam_world, t_cam_world,
-        np.array([camera.fx, camera.fy, camera.cx, camera.cy]), (iterations + 1) // 2, iterations, huber_px, chi2,
+        camera.intrinsics, (iterations + 1) // 2, iterations, huber_px, chi2,
     )  # ORB-SLAM2 local BA: robust first, then the inliers alone
     unsorted_inlier, unsorted_errors = np.empty_like(inlier), np.empty_like(errors_px)
     unsorted_inlier[order], unsorted_errors[order] = inlier, errors_px
