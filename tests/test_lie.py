@@ -12,6 +12,7 @@ from vo_core.geometry.lie import (
     se3_adjoint,
     se3_exp,
     se3_inverse,
+    se3_inverse_compiled,
     se3_log,
     sim3_adjoint,
     sim3_exp,
@@ -55,16 +56,16 @@ def random_elements(group: str, count: int = 20) -> list[np.ndarray]:
     return [sim3_exp(xi) for xi in random_twists(7, count, scale=0.5)]
 
 
-INVERSE = {"so3": lambda R: R.T, "se3": se3_inverse, "sim3": sim3_inverse}
-IDENTITY = {"so3": np.eye(3), "se3": np.eye(4), "sim3": np.eye(4)}
+INVERSE = {"so3": lambda R: R.T, "se3": se3_inverse, "se3_compiled": se3_inverse_compiled, "sim3": sim3_inverse}
+IDENTITY = {"so3": np.eye(3), "se3": np.eye(4), "se3_compiled": np.eye(4), "sim3": np.eye(4)}
 
 
 # ----------------------------------------------------------------------------------------------- axioms
 
 
-@pytest.mark.parametrize("group", ["so3", "se3", "sim3"])
+@pytest.mark.parametrize("group", ["so3", "se3", "se3_compiled", "sim3"])
 def test_group_axioms(group):
-    elements = random_elements(group, 12)
+    elements = random_elements(group.removesuffix("_compiled"), 12)
     inverse, identity = INVERSE[group], IDENTITY[group]
     for a, b, c in zip(elements, elements[1:], elements[2:]):
         np.testing.assert_allclose((a @ b) @ c, a @ (b @ c), atol=1e-12)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from vo_core.geometry.lie import se3_log_compiled
+from vo_core.geometry.lie import se3_inverse_compiled, se3_log_compiled
 
 PARAMS_PER_KEYFRAME = 8
 
@@ -97,10 +97,6 @@ class MarginalizationPrior:
 def _pose_increments(T, T0):
     """(K, 6) log(T_k T0_k^-1): each keyframe's left increment in the world frame from its linearization point."""
     increments = np.empty((len(T), 6))
-    T0_inverse = np.eye(4)
     for k in range(len(T)):
-        R_t = np.ascontiguousarray(T0[k, :3, :3].T)
-        T0_inverse[:3, :3] = R_t
-        T0_inverse[:3, 3] = -(R_t @ np.ascontiguousarray(T0[k, :3, 3]))
-        increments[k] = se3_log_compiled(np.ascontiguousarray(T[k]) @ T0_inverse)
+        increments[k] = se3_log_compiled(np.ascontiguousarray(T[k]) @ se3_inverse_compiled(T0[k]))
     return increments

@@ -41,7 +41,7 @@ from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.photometric_kernels import window_linearization
-from vo_core.geometry.lie import se3_adjoint_compiled, se3_exp
+from vo_core.geometry.lie import se3_adjoint_compiled, se3_exp, se3_inverse_compiled
 
 PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
 # The window's dense products are small (8K x P with P ~ 2000): threaded BLAS gains nothing there, and when the
@@ -328,10 +328,6 @@ def _relative_poses(T_world_cam):
 def _inverse_adjoints(T_world_cam):
     """(K, 6, 6) Ad(T_cam_world) of each keyframe."""
     adjoints = np.empty((len(T_world_cam), 6, 6))
-    T_cam_world = np.eye(4)
     for k in range(len(T_world_cam)):
-        R_t = np.ascontiguousarray(T_world_cam[k, :3, :3].T)
-        T_cam_world[:3, :3] = R_t
-        T_cam_world[:3, 3] = -(R_t @ np.ascontiguousarray(T_world_cam[k, :3, 3]))
-        adjoints[k] = se3_adjoint_compiled(T_cam_world)
+        adjoints[k] = se3_adjoint_compiled(se3_inverse_compiled(T_world_cam[k]))
     return adjoints

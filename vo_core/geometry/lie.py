@@ -161,6 +161,16 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
     return se3(R.T, -R.T @ t)
 
 
+@numba.njit(cache=True, nogil=True)
+def se3_inverse_compiled(T):
+    """se3_inverse compiled (the window's kernels invert each keyframe's pose)."""
+    R_t = np.ascontiguousarray(T[:3, :3].T)
+    inverse = np.eye(4)
+    inverse[:3, :3] = R_t
+    inverse[:3, 3] = -(R_t @ np.ascontiguousarray(T[:3, 3]))
+    return inverse
+
+
 def se3_adjoint(T: np.ndarray) -> np.ndarray:
     """Adj(T) with T exp(xi) T^-1 = exp(Adj(T) xi), for xi = (v, w): [[R, [t]x R], [0, R]]."""
     return se3_adjoint_compiled(np.ascontiguousarray(T, dtype=float))
