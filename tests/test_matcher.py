@@ -15,6 +15,7 @@ from vo_core.features.matcher import (
     hamming,
     hamming_rows,
     match_by_bow,
+    match_exhaustive,
     orientation_consistent,
     search_by_projection,
     search_epipolar,
@@ -143,6 +144,22 @@ def test_a_feature_claimed_twice_goes_to_the_nearest_query():
     np.testing.assert_array_equal(idx_b, [0])
     idx_p, idx_f = search_by_projection(features_b, np.zeros((3, 2)), features_a.descriptors, 0, 3.0)
     np.testing.assert_array_equal(idx_p, [1])
+
+
+@pytest.mark.parametrize(("max_distance", "ratio"), [(50, 0.9), (100, 0.75), (256, 1.0)])
+def test_exhaustive_matching_finds_what_opencvs_brute_force_matcher_finds(homography_pair, max_distance, ratio):
+    """The epipolar witness's matching: the pairs of OpenCV's knnMatch (k = 2) that pass the distance and ratio
+    tests, the same to the index (ORB descriptors of a turned, zoomed view; ties at the nearest fail the ratio
+    test either way), several features of ``a`` allowed the same of ``b``."""
+    features_a, features_b, _ = homography_pair
+    doubled = Features.concatenate([features_a, features_a.subset(np.arange(20))])  # 20 share their nearest
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(doubled.descriptors, features_b.descriptors, k=2)
+    expected = [(best.queryIdx, best.trainIdx) for best, second in pairs
+                if best.distance <= max_distance and best.distance < ratio * second.distance]
+    idx_a, idx_b = match_exhaustive(doubled, features_b, max_distance=max_distance, ratio=ratio)
+    np.testing.assert_array_equal(np.stack([idx_a, idx_b], axis=1), np.array(expected).reshape(-1, 2))
+    assert len(np.unique(idx_b)) < len(idx_b)
+    assert len(idx_a) > 100
 
 
 def test_projection_search_ratio_test_between_candidates_in_the_window():
@@ -336,5 +353,7 @@ def test_empty_inputs_give_empty_matches(homography_pair):
         search_by_projection(empty, np.zeros((3, 2)), np.zeros((3, 32), np.uint8), 0, 3.0),
         search_by_projection(features_a, np.zeros((0, 2)), np.zeros((0, 32), np.uint8), 0, 3.0),
         search_epipolar(empty, features_a, np.eye(3)),
+        match_exhaustive(empty, features_a, max_distance=50, ratio=0.9),
+        match_exhaustive(features_a, empty, max_distance=50, ratio=0.9),
     ):
         assert len(idx[0]) == len(idx[1]) == 0

@@ -28,6 +28,7 @@ import numpy as np
 
 from vo_core.direct.config import EpipolarCheckConfig
 from vo_core.features.config import OrbConfig
+from vo_core.features.matcher import match_exhaustive
 from vo_core.features.orb import Features, OrbExtractor
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import motion_angles_deg, se3_inverse
@@ -166,10 +167,5 @@ def _matches(first: Features, second: Features, config: EpipolarCheckConfig) -> 
     """Nearest descriptor in the other image, kept when clearly nearer than the second (Lowe's ratio)."""
     if len(first) < 2 or len(second) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(first.descriptors, second.descriptors, k=2)
-    kept = [(best.queryIdx, best.trainIdx) for best, second_best in (p for p in pairs if len(p) == 2)
-            if best.distance <= config.max_distance and best.distance < config.ratio * second_best.distance]
-    if not kept:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    index = np.array(kept)
-    return first.uv[index[:, 0]], second.uv[index[:, 1]]
+    index_first, index_second = match_exhaustive(first, second, max_distance=config.max_distance, ratio=config.ratio)
+    return first.uv[index_first], second.uv[index_second]

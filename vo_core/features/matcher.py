@@ -4,9 +4,9 @@ After ORB-SLAM2 src/ORBmatcher.cc (``SearchByBoW``, ``SearchByProjection``, ``Se
 ``ComputeThreeMaxima``), rewritten for numpy: candidate pairs are built all at once, their Hamming distances
 computed in one call, and best / second best / one-to-one resolved by sorting, never by a loop per feature.
 
-Every search returns two index arrays of equal length (a pair per match), sorted by the first one. All are
-one-to-one: where several queries pick the same feature, the one at the smallest distance keeps it (ORB-SLAM2
-keeps the first or the last, depending on the search).
+Every search returns two index arrays of equal length (a pair per match), sorted by the first one. All but the
+exhaustive one are one-to-one: where several queries pick the same feature, the one at the smallest distance keeps
+it (ORB-SLAM2 keeps the first or the last, depending on the search).
 
 Hamming distances: descriptors are read as four 64-bit words, XORed, and their set bits counted with
 ``np.bitwise_count`` (numpy >= 2, a hardware popcount where there is one; several times faster than a
@@ -166,6 +166,33 @@ def match_by_bow(
     i, j = _nearest_sharing_node(features_a, np.arange(len(features_a)), nodes_a, features_b,
                                  np.arange(len(features_b)), nodes_b, None, None, max_distance, ratio)
     return _keep_consistent_rotation(i, j, features_a.angle, features_b.angle, check_orientation)
+
+
+# ------------------------------------------------------------------------------------------- exhaustive
+
+
+def match_exhaustive(a: Features, b: Features, *, max_distance: float, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every feature of ``a`` against all of ``b``: the nearest descriptor within ``max_distance`` that passes the
+    ratio test against the second nearest (ORB-SLAM2's initialization matching without its search window; the
+    same pairs as OpenCV's brute-force ``knnMatch`` with k = 2, at a quarter of its CPU time). Not one-to-one: a
+    feature of ``b`` may be the nearest of several. Returns (idx_a, idx_b)."""
+    if len(a) == 0 or len(b) == 0:
+        return _empty_match()
+    return _nearest_of_all(_words(a.descriptors), _words(b.descriptors), float(max_distance), float(ratio))
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_of_all(words_a, words_b, max_distance, ratio):
+    found_a, found_b = np.empty(len(words_a), np.int64), np.empty(len(words_a), np.int64)
+    found = 0
+    for i in range(len(words_a)):
+        nearest = NO_NEAREST
+        for j in range(len(words_b)):
+            nearest = _nearest_update(nearest, _hamming_words(words_a[i], words_b[j]), j)
+        if _accepted(nearest, max_distance, ratio):
+            found_a[found], found_b[found] = i, nearest[1]
+            found += 1
+    return found_a[:found], found_b[:found]
 
 
 # ---------------------------------------------------------------------------------------- by projection
