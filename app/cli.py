@@ -191,6 +191,23 @@ def _add_source_options(parser: argparse.ArgumentParser) -> None:
 
 
 def command_run(args: argparse.Namespace) -> int:
+    code = _run_command(args)
+    if args.own_process:
+        _end_process(code)
+    return code
+
+
+def _end_process(code: int) -> NoReturn:
+    """After a run in a process of its own: its files are written and closed, the recording flushed, the mapping
+    threads and the feature half's process joined. What is left is the interpreter's teardown, freeing the maps and
+    the compiled kernels object by object (0.2 s of a 9 s teddy run, 0.26 s with a recording), which nothing needs:
+    the process ends here."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def _run_command(args: argparse.Namespace) -> int:
     from app.live import LiveCamera, LivePlayer, live_device, live_undistorter
     from app.pipeline import check_method, open_source
     from app.player import Player

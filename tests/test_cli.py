@@ -562,6 +562,28 @@ def test_python_dash_m_app_runs_a_real_method_end_to_end(rendered_dataset, tmp_p
     assert metrics["evaluation"]["ate"]["rmse"] < 0.05 * path_length
 
 
+def test_a_threaded_fdmo_run_in_its_own_process_ends_with_its_recording_and_files_complete(rendered_dataset, tmp_path):
+    """``fdmo run`` ends its process without the interpreter's teardown (app.cli._end_process): the recording is
+    flushed, the feature half's process joined and every file written before that."""
+    rr = pytest.importorskip("rerun")
+    out = tmp_path / "results"
+    completed = subprocess.run(
+        [sys.executable, "-m", "app", "run", str(rendered_dataset), "--mapping", "threaded", "--out", str(out)],
+        cwd=REPO, capture_output=True, text=True, timeout=300,
+        env={name: value for name, value in os.environ.items() if name != "PYTHONUNBUFFERED"},  # as a user's shell
+    )
+    assert completed.returncode == 0, completed.stderr
+    assert completed.stdout.strip().splitlines()[-1].strip() == f"results in {out}"  # the summary, flushed
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["method"] == "fdmo" and metrics["processed_frames"] == 24
+    assert len(read_trajectory(out / "trajectory.tum")) == metrics["posed_frames"] > 0
+    events = [json.loads(line)["kind"] for line in (out / "events.jsonl").read_text().splitlines()]
+    assert events.count("feature_keyframe_added") == metrics["keyframes"]
+    recording = rr.chunk.RrdReader(out / "recording.rrd")
+    assert recording.blueprints()  # sent last, at the sink's close
+    assert {chunk.entity_path for chunk in recording.stream().to_chunks()} >= {"/events", "/world/camera"}
+
+
 def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
     completed = subprocess.run([sys.executable, "-m", "app", "run", str(tmp_path / "nowhere")],
                                cwd=REPO, capture_output=True, text=True, timeout=60)
