@@ -556,7 +556,7 @@ COMMANDS = {"run": command_run, "eval": command_eval, "info": command_info, "plo
 
 
 def command_line() -> int:
-    """The ``fdmo`` command (and ``python -m app``): ``main`` in a process of its own."""
+    """The ``fdmo`` command and ``python -m app`` (both through app/__main__.py): ``main`` in a process of its own."""
     return main(own_process=True)
 
 

@@ -6,6 +6,7 @@ test the app, fast); a few run the real command in a subprocess, with a real met
 
 from __future__ import annotations
 
+import importlib.metadata
 import io
 import json
 import os
@@ -582,6 +583,18 @@ def test_a_threaded_fdmo_run_in_its_own_process_ends_with_its_recording_and_file
     recording = rr.chunk.RrdReader(out / "recording.rrd")
     assert recording.blueprints()  # sent last, at the sink's close
     assert {chunk.entity_path for chunk in recording.stream().to_chunks()} >= {"/events", "/world/camera"}
+
+
+def test_the_fdmo_scripts_module_imports_nothing_a_spawned_process_would_import_again():
+    """A process multiprocessing spawns (the feature half's) runs the ``fdmo`` script again, which imports the module
+    of its entry point: that module must not import the app (app.cli and, through it, the whole odometry)."""
+    entry = next(point for point in importlib.metadata.entry_points(group="console_scripts") if point.name == "fdmo")
+    module = entry.value.partition(":")[0]
+    imported = subprocess.run([sys.executable, "-c", f"import sys, {module}; print(sorted(m for m in sys.modules "
+                                                     "if m.split('.')[0] in ('app', 'vo_core', 'numpy')))"],
+                              cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert imported.returncode == 0, imported.stderr
+    assert imported.stdout.strip() == repr(["app", module])
 
 
 def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
