@@ -2,12 +2,13 @@
 
     python3 benchmarks/throughput.py ../shared/data/tum_fr3_teddy_first200 --runs 3 \
         --contender fdmo="--no-rrd" --contender recorded="" --contender direct="--method direct --no-rrd" \
-        --peer dso="/tmp/peers/dso/run_dso.sh {folder} {trajectory}"
+        --peer dso="../peers/dso/run_dso_native.sh {folder} {trajectory}"
 
 Each contender is one whole process as a user starts it: ``fdmo run FOLDER --quiet --out DIR`` with the
 contender's arguments (the Rerun recording is on unless they say ``--no-rrd``), or a peer's command line with
 ``{folder}`` and ``{trajectory}`` (the TUM file it must write) filled in (build the peers as ../shared/peers/README.md
-says). Round after round every contender runs once, in the
+says, and let them read the folder's own image files, as fdmo does: a peer fed images converted beforehand skips
+their decoding, BENCHMARKS.md, Real time, tenth stop). Round after round every contender runs once, in the
 same order, so a slow spell of the machine touches them all. Per contender: median wall time, CPU time (user + sys)
 and peak RSS of the process and its children (os.wait4), keyframes (fdmo) and ATE (the Sim(3)-aligned RMSE of the
 posed frames against the folder's ground truth, vo_core.eval, for peers too). Run it on an idle machine.
