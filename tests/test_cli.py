@@ -295,7 +295,6 @@ def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request
         (["run", "{dataset}", "--method", "orbslam"], "invalid choice"),
         (["run", "{dataset}", "--set", "seed"], "expected key=value"),
         (["run", "{dataset}", "--set", "klt.nonsense=1"], "unknown config key"),
-        (["run", "{dataset}", "--set", "direct.start_check.epipolar.estimator=lmeds"], "'lmeds' is not one of usac"),
         (["run", "{dataset}", "--drop", "5"], "FRAME:COUNT"),
         (["run", "{dataset}", "--drop", "40:2"], "not among the frames played (0..11)"),
         (["run", "{dataset}", "--jump", "5"], "FRAME:TARGET"),

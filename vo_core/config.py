@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from vo_core.direct.config import ESSENTIAL_ESTIMATORS, DirectConfig
+from vo_core.direct.config import DirectConfig
 from vo_core.direct.divergence import DivergenceConfig
 from vo_core.errors import InputError
 from vo_core.features.config import FeatureConfig
@@ -228,10 +228,6 @@ def _apply(obj: Any, values: dict[str, Any], prefix: str, source: str) -> None:
 def _validate(config: Config) -> None:
     if config.method not in METHODS:
         raise InputError(f"config key 'method': {config.method!r} is not one of {', '.join(METHODS)}")
-    estimator = config.direct.start_check.epipolar.estimator
-    if estimator not in ESSENTIAL_ESTIMATORS:
-        raise InputError(f"config key 'direct.start_check.epipolar.estimator': {estimator!r} is not one of "
-                         f"{', '.join(ESSENTIAL_ESTIMATORS)}")
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:

@@ -179,9 +179,6 @@ class WindowConfig:
     scale_fixed_from_step: int = 2
 
 
-ESSENTIAL_ESTIMATORS = ("usac", "ransac")
-
-
 @dataclass
 class EpipolarCheckConfig:
     """The start check's independent witness (epipolar_check.py): the essential matrix of ORB matches between the
@@ -198,10 +195,6 @@ class EpipolarCheckConfig:
     ratio: float = 0.9
     ransac_threshold_px: float = 1.0  # ORB-SLAM's sigma of one pixel
     ransac_confidence: float = 0.999
-    # The essential matrix's robust estimator: "usac" (OpenCV's USAC_DEFAULT: SPRT, local optimization; half the time
-    # of "ransac", the five-point RANSAC of OpenCV's 1,000 draws, on KITTI's start; as close to the ground truth's
-    # motion on the shared folders' start pairs, BENCHMARKS.md, Real time, tenth stop) or "ransac".
-    estimator: str = "usac"  # one of ESSENTIAL_ESTIMATORS
     # A pair qualifies with this many matches triangulated in front of both views (ORB-SLAM2's
     # CreateInitialMapMonocular resets a start with fewer than 100 tracked points) ...
     min_points: int = 100

@@ -4,10 +4,10 @@ The start check's other measures (start_check.py) all come from the direct map i
 in a self-consistent way passes them: DSO's coarse initializer on KITTI played backward from frame 0 hands over a
 first pose 8 deg and 45 deg off that its window optimizations then refine without complaint (inlier ratio 0.70,
 no energy growth, parallax unchanged). Two images say it directly: the essential matrix of their ORB matches
-(the five-point solver in OpenCV's USAC, cv2.findEssentialMat) gives the relative rotation and translation
-direction without any of the map's depths. For each keyframe of the start's window against its oldest one, where
-the matches support the epipolar geometry well (enough points triangulated in front of both views, seen under
-enough parallax), the direct poses' motion is compared with it.
+(five-point RANSAC, cv2.findEssentialMat) gives the relative rotation and translation direction without any of the
+map's depths. For each keyframe of the start's window against its oldest one, where the matches support the
+epipolar geometry well (enough points triangulated in front of both views, seen under enough parallax), the
+direct poses' motion is compared with it.
 
 A plane seen from two views has two motions that explain it equally (Faugeras' twofold ambiguity), and the
 essential matrix then picks one at random: a pair whose inliers a homography explains as well (ORB-SLAM's model
@@ -34,9 +34,6 @@ from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import motion_angles_deg, se3_inverse
 from vo_core.geometry.multiview import bearing_angles
 from vo_core.geometry.two_view import TwoViewConfig, estimate_models, motion_from_essential
-
-
-ESTIMATORS = {"usac": cv2.USAC_DEFAULT, "ransac": cv2.RANSAC}  # by EpipolarCheckConfig.estimator
 
 
 @dataclass
@@ -140,10 +137,9 @@ class EpipolarCheck:
         uv_anchor, uv_other = _matches(anchor_features.result(), other_features, config)
         if len(uv_anchor) < config.min_points:
             return None
-        # This thread's RANSAC draws ("ransac"; USAC seeds its own): each pair's the same, whichever thread measures it.
-        cv2.setRNGSeed(config.seed)
-        E, inliers = cv2.findEssentialMat(uv_anchor, uv_other, camera.K, ESTIMATORS[config.estimator],
-                                          config.ransac_confidence, config.ransac_threshold_px)
+        cv2.setRNGSeed(config.seed)  # this thread's RANSAC draws: each pair's the same, whichever thread measures it
+        E, inliers = cv2.findEssentialMat(uv_anchor, uv_other, camera.K, cv2.RANSAC, config.ransac_confidence,
+                                          config.ransac_threshold_px)
         if E is None or E.shape != (3, 3):
             return None
         motion = motion_from_essential(camera, E, uv_anchor, uv_other, inliers.ravel() > 0, TwoViewConfig())
