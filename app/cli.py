@@ -33,6 +33,7 @@ from typing import Any, NoReturn
 
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
+from app.process_start import MAPPING_MODES, mapping_mode
 from app.sinks.background import BackgroundSink
 from vo_core.config import METHODS, Config, load_config
 from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
@@ -49,7 +50,6 @@ DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
-MAPPING_MODES = ("sync", "threaded")
 # Read when rerun's library loads: its allocator (mimalloc) gives freed memory back at once rather than keeping it
 # for later, and commits its arenas as they fill (issue 17: 13-16 MB less on teddy).
 RECORDING_ALLOCATOR = {"MIMALLOC_PURGE_DELAY": "0", "MIMALLOC_ARENA_EAGER_COMMIT": "0"}
@@ -216,8 +216,7 @@ def _run_command(args: argparse.Namespace) -> int:
     if device is not None:
         _check_live_options(args)
         args.realtime = True  # a camera delivers its frames whether or not the odometry is ready for them
-    overrides = [*_live_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
-    config = load_config(args.config, overrides)
+    config = run_config(args)
     if device is not None:
         undistorter = live_undistorter(device, args.camera, config.dataset.undistort_output)
         check_method(config, undistorter.camera)
@@ -234,6 +233,13 @@ def _run_command(args: argparse.Namespace) -> int:
         _warm_up(config, sequence.camera, args.quiet)
     player = Player(sequence, args.drops, args.jumps, realtime=args.realtime)
     return _run_and_report(args, config, sequence, player, show_progress=not args.quiet)
+
+
+def run_config(args: argparse.Namespace) -> Config:
+    """The configuration of ``fdmo run``: the file's (or the defaults), then what the options change, then the user's
+    own --set, then --method."""
+    overrides = [*_live_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
+    return load_config(args.config, overrides)
 
 
 def _check_live_options(args: argparse.Namespace) -> None:
@@ -273,7 +279,7 @@ def _live_overrides(args: argparse.Namespace) -> list[str]:
     maps on its own thread and does not wait for keyframes (DSO's real-time mode), nor for DSO's rotation guesses
     (direct.tracker.rotation_hypotheses), nor for the new start's epipolar witness (it runs beside mapping); a run
     with the page open maps on its own thread."""
-    mode = args.mapping or ("threaded" if args.realtime or args.viser else "sync")
+    mode = mapping_mode(args.mapping, args.realtime, args.viser)
     overrides = [f"mapping.threaded={str(mode == 'threaded').lower()}"]
     live = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false",
             "direct.start_check.epipolar.beside_mapping=true"]

@@ -28,7 +28,8 @@ from vo_core.datasets import open_sequence
 from vo_core.errors import InputError
 from vo_core.eval import DEFAULT_MAX_DT_S, evaluate
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot, Sink
-from vo_core.system import Odometry
+from vo_core.features.feature_process import start_ahead
+from vo_core.system import Odometry, maps_features_in_a_process
 from vo_core.trajectory import Trajectory
 
 SYNTHETIC = "synthetic"  # source synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]] (open_source)
@@ -117,12 +118,18 @@ def warm_up(config: Config, camera, num_frames: int = WARM_UP_FRAMES) -> float:
     """Run ``config.method`` over a short synthetic sequence at the camera's image size and throw it away: what
     the first frames, the first keyframes and the first window marginalization load once per process (the
     compiled kernels from numba's cache, numba's typed lists, OpenCV's first calls) is loaded before a live run
-    starts, as a live system gets ready before it opens the camera. Returns the seconds it took."""
+    starts, as a live system gets ready before it opens the camera. Returns the seconds it took.
+
+    The throwaway odometry maps on this thread. A run whose feature half maps in a process of its own has that
+    process started now (``start_ahead``): it gets ready beside this warm-up, for the run, instead of being the
+    throwaway's and closed with it."""
     from vo_core.synthetic import make_sequence
 
     started = time.perf_counter()
+    if maps_features_in_a_process(config):
+        start_ahead()
     sequence = make_sequence(WARM_UP_PRESET, num_frames, width=camera.width, height=camera.height)
-    track(config, sequence.camera, sequence)
+    track(_synchronous(config), sequence.camera, sequence)
     return time.perf_counter() - started
 
 
@@ -140,7 +147,11 @@ def check_method(config: Config, camera) -> None:
     """Build the odometry once, without sinks, so that a method that does not exist yet (or a setting its front
     end refuses) raises InputError before any viewer starts or any file is written. Built without mapping threads:
     what they add (a process for the feature half) would start only to be stopped."""
-    Odometry(dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, threaded=False)), camera).close()
+    Odometry(_synchronous(config), camera).close()
+
+
+def _synchronous(config: Config) -> Config:
+    return dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, threaded=False))
 
 
 def run_sequence(

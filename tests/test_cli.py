@@ -597,6 +597,53 @@ def test_the_fdmo_scripts_module_imports_nothing_a_spawned_process_would_import_
     assert imported.stdout.strip() == repr(["app", module])
 
 
+@pytest.mark.parametrize("argv", [
+    ["run", "folder", "--mapping", "threaded"],
+    ["run", "--mapping=threaded", "folder"],
+    ["run", "folder", "--realtime"],
+    ["run", "folder", "--viser", "--no-rrd"],
+    ["run", "folder"],
+    ["run", "folder", "--realtime", "--mapping", "sync"],
+    ["run", "folder", "--mapping", "threaded", "--method", "direct"],
+    ["run", "folder", "--method", "direct", "--mapping", "threaded", "--method", "fdmo"],
+    ["run", "folder", "--mapping", "threaded", "--method", "klt"],
+])
+def test_the_command_line_read_by_hand_tells_which_runs_map_features_in_a_process(argv):
+    """app/process_start.py reads the command line before anything is imported, to start the feature half's
+    process ahead; it must come to what the run's configuration says (vo_core.system)."""
+    from app.cli import build_parser, run_config
+    from app.process_start import maps_features_in_a_process
+
+    configured = vo_core.system.maps_features_in_a_process(run_config(build_parser().parse_args(argv)))
+    assert maps_features_in_a_process(argv) is configured
+    assert not maps_features_in_a_process(["bench", *argv[1:]]) and not maps_features_in_a_process([])
+
+
+def test_the_fdmo_command_starts_the_feature_process_before_it_imports_the_app():
+    script = ("import sys; from vo_core.features import feature_process; "
+              "feature_process.start_ahead = lambda: print('ahead; app.cli imported:', 'app.cli' in sys.modules); "
+              "sys.argv = ['fdmo', 'run', '--mapping', 'threaded', '--help']; from app.__main__ import main; main()")
+    completed = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert completed.returncode == 0, completed.stderr
+    assert completed.stdout.splitlines()[0] == "ahead; app.cli imported: False"
+
+
+def test_a_live_runs_warm_up_leaves_the_run_its_feature_process_started_ahead():
+    """The warm-up's throwaway odometry maps on this thread; the feature process started for the run gets ready
+    beside it and is still waiting afterwards, not closed with the throwaway."""
+    from app.pipeline import warm_up
+    from vo_core.features import feature_process
+
+    warm_up(load_config(None, ["mapping.threaded=true"]), make_sequence("smooth", 2, width=160, height=120).camera,
+            num_frames=6)
+    (process, connection), = feature_process._ahead
+    feature_process._ahead.clear()
+    assert process.is_alive()
+    connection.close()  # it ends
+    process.join(10)
+    assert process.exitcode == 0
+
+
 def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
     completed = subprocess.run([sys.executable, "-m", "app", "run", str(tmp_path / "nowhere")],
                                cwd=REPO, capture_output=True, text=True, timeout=60)

@@ -1,5 +1,6 @@
 """The feature half in a process of its own (vo_core/features/feature_process.py): it answers as FeatureOdometry
-here does, its errors are raised here, and a closed or dead process says so instead of hanging."""
+here does, its errors are raised here, a closed or dead process says so instead of hanging, and one started ahead
+of the odometry serves it."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_odometry import FeatureOdometry
+from vo_core.features import feature_process
 from vo_core.features.feature_process import FeatureProcess
 from vo_core.synthetic import make_sequence
 
@@ -109,3 +111,33 @@ def test_ctrl_c_to_the_process_group_is_left_to_the_parent(started_on):
     os.kill(starting._process.pid, signal.SIGINT)
     assert starting.newest_keyframe is None
     starting.close()
+
+
+def test_a_process_started_ahead_serves_the_next_feature_half_as_a_new_one_would(both):
+    """``start_ahead`` (before the app's imports, or in a live run's warm-up): the next FeatureProcess takes that
+    process, whose kernels were loaded on a made-up scene, and grows the same feature map as one started with it;
+    the one after starts its own."""
+    here, _, (reports_here, _) = both
+    feature_process.start_ahead()
+    feature_process.start_ahead()  # one waits at a time
+    (ahead, _), = feature_process._ahead
+    taken, fresh = FeatureProcess(FeatureConfig(), SEQUENCE.camera), FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    try:
+        assert taken._process is ahead and fresh._process is not ahead and not feature_process._ahead
+        assert grow(taken) == reports_here
+        assert np.array_equal(taken.points_world(), here.points_world())
+    finally:
+        taken.close()
+        fresh.close()
+
+
+def test_a_process_started_ahead_that_died_is_left_for_a_new_one():
+    feature_process.start_ahead()
+    (ahead, _), = feature_process._ahead
+    ahead.kill()
+    ahead.join()
+    features = FeatureProcess(FeatureConfig(), SEQUENCE.camera)
+    try:
+        assert features._process is not ahead and features.empty
+    finally:
+        features.close()

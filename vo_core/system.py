@@ -85,6 +85,11 @@ def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
     )
 
 
+def maps_features_in_a_process(config: Config) -> bool:
+    """Whether the odometry's feature half maps in a process of its own: FDMO with mapping threads."""
+    return config.method == "fdmo" and config.mapping.threaded
+
+
 def _feature_half(config: FeatureConfig, camera: PinholeCamera, process_niceness: int | None):
     """FDMO's feature half: with mapping threads in a process of its own, ``process_niceness`` nicer (its Python
     would hold the GIL the tracking and the direct mapping threads need), else (None) here."""
@@ -116,7 +121,8 @@ class Odometry:
         threaded = mapping.threaded and self.front_end is None
         if config.method == "fdmo":
             niceness = mapping.feature_niceness if mapping.wait_for_keyframes else mapping.live_feature_niceness
-            self.features = _feature_half(config.features, camera, niceness if threaded else None)
+            in_a_process = maps_features_in_a_process(config)
+            self.features = _feature_half(config.features, camera, niceness if in_a_process else None)
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None
