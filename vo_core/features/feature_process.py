@@ -157,7 +157,10 @@ def _serve(connection: Connection) -> None:
     """The process: load the kernels, then build the feature half it is given, say whether that worked, and answer
     calls until told to stop (or until the parent is gone)."""
     try:
-        _load_kernels()
+        try:
+            _load_kernels()
+        except Exception:  # only a warm-up: what is wrong with the run's feature half is raised at its first call
+            pass
         config, camera, niceness = connection.recv()
         from vo_core.features.feature_odometry import FeatureOdometry
 
