@@ -188,8 +188,9 @@ def _serve(connection: Connection) -> None:
 
 def _load_kernels() -> None:
     """The feature half's first keyframes and a recovery on a made-up scene, thrown away: what a process loads once
-    (numba's start, the compiled kernels from its cache, OpenCV's first calls) is loaded before a run waits for it.
-    Nothing of it is kept: the run's FeatureOdometry is built afresh, and its results are those of a new process."""
+    (numba's start, the compiled kernels from its cache, the bundled vocabulary, OpenCV's first calls) is loaded
+    before a run waits for it. The map is not kept: the run's FeatureOdometry is built afresh, and its results are
+    those of a new process (a test compares them)."""
     import cv2
 
     from vo_core.features.config import FeatureConfig
