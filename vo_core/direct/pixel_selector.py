@@ -132,7 +132,7 @@ class PixelSelector:
                 continue
             _take_best_in_cells(grad_sq[level], 0.5**level, thresholds, config.block_size, weight, threshold_factor,
                                 config.border, level0.packed, np.cos(angle), np.sin(angle), cell, kind, chosen)
-        rows, cols = np.nonzero(chosen)  # row-major: sorted by (v, u)
+        rows, cols = np.nonzero(chosen.view(np.bool_))  # row-major: sorted by (v, u); on bools 0.6 against 0.8 ms
         return Selection(np.stack([cols, rows], axis=1), chosen[rows, cols].astype(np.int64))
 
 
@@ -144,35 +144,44 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
     level-0 pixel at least ``border`` inside the image (one more on the right) whose level's |grad|^2 (``grad_sq``,
     the level's pixel under it: ``scale`` = 2^-level) passes its block's threshold times ``weight`` and ``factor``.
 
-    One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size."""
+    One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size. What
+    depends on a column alone (its pixel on the level, its threshold block) is looked up once per call."""
     h, w = chosen.shape
     level_h, level_w = grad_sq.shape
     h_blocks, w_blocks = thresholds.shape
+    scaled_thresholds = thresholds * weight * factor
+    level_col = np.empty(w, np.int64)
+    block_col = np.empty(w, np.int64)
+    for x in range(w):
+        level_col[x] = min(int(x * scale + scale / 2), level_w - 1)
+        block_col[x] = min(x // block, w_blocks - 1)
+    x_lo, x_hi = border, w - border - 1
     for cell_row in range(cos_angle.shape[0]):
+        y0 = cell_row * cell
+        y1 = min(y0 + cell, h)
         for cell_col in range(cos_angle.shape[1]):
-            y0, x0 = cell_row * cell, cell_col * cell
-            y1, x1 = min(y0 + cell, h), min(x0 + cell, w)
-            blocked = False
-            for y in range(y0, y1):
-                for x in range(x0, x1):
-                    blocked |= chosen[y, x] != 0
-            if blocked:
+            x0 = cell_col * cell
+            x1 = min(x0 + cell, w)
+            if _any_chosen(chosen, y0, y1, x0, x1):
                 continue
             best, best_y, best_x = 0.0, -1, -1
-            for y in range(y0, y1):
-                if y < border or y >= h - border:
-                    continue
+            cos_a, sin_a = cos_angle[cell_row, cell_col], sin_angle[cell_row, cell_col]
+            for y in range(max(y0, border), min(y1, h - border)):
                 level_y = min(int(y * scale + scale / 2), level_h - 1)
                 block_y = min(y // block, h_blocks - 1)
-                for x in range(x0, x1):
-                    if x < border or x >= w - border - 1:
-                        continue
-                    level_x = min(int(x * scale + scale / 2), level_w - 1)
-                    threshold = thresholds[block_y, min(x // block, w_blocks - 1)] * weight * factor
-                    if grad_sq[level_y, level_x] > threshold:
-                        score = abs(packed[y, x, 1] * cos_angle[cell_row, cell_col]
-                                    + packed[y, x, 2] * sin_angle[cell_row, cell_col])
+                for x in range(max(x0, x_lo), min(x1, x_hi)):
+                    if grad_sq[level_y, level_col[x]] > scaled_thresholds[block_y, block_col[x]]:
+                        score = abs(packed[y, x, 1] * cos_a + packed[y, x, 2] * sin_a)
                         if score > best:
                             best, best_y, best_x = score, y, x
             if best_y >= 0:
                 chosen[best_y, best_x] = kind
+
+
+@numba.njit(cache=True, nogil=True)
+def _any_chosen(chosen, y0, y1, x0, x1):
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if chosen[y, x] != 0:
+                return True
+    return False
