@@ -7,7 +7,7 @@ import pytest
 
 from test_direct_support import PlaneScene, pose, small_camera
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.coarse_tracker import CoarseTracker
+from vo_core.direct.coarse_tracker import CoarseTracker, _merged_per_pixel
 from vo_core.direct.immature_point import ActivationTargets, ImmaturePoints, optimize_for_activation
 from vo_core.direct.pixel_selector import PixelSelector, block_thresholds
 from vo_core.direct.pyramid import ImagePyramid
@@ -217,3 +217,20 @@ def test_activation_pulls_inverse_depths_to_the_truth_from_five_percent_off(trac
     relative_error = np.abs(idepth[usable] - true_idepth[ready][usable]) / true_idepth[ready][usable]
     assert np.median(relative_error) < 0.01
     assert np.percentile(relative_error, 90) < 0.03
+
+
+def test_a_coarse_level_holds_each_pixel_once_at_the_mean_inverse_depth_of_its_points():
+    """makeCoarseDepthL0's merge: points rounded to pixels (halves to even, as np.round), one per pixel in raster
+    order, at the mean inverse depth of the points that fell into it (points up to half a pixel outside too)."""
+    rng = np.random.default_rng(4)
+    uv = np.concatenate([rng.uniform(-0.5, 32.0, (300, 2)), [[2.5, 3.5], [3.5, 3.5], [2.4, 4.4], [-0.5, 0.5]]])
+    idepth = rng.uniform(0.1, 2.0, len(uv))
+    width = 32
+    by_pixel: dict[tuple[int, int], list[float]] = {}
+    for (u, v), d in zip(np.round(uv).astype(int), idepth):
+        by_pixel.setdefault((v, u), []).append(d)
+    raster = sorted(by_pixel)
+    merged_uv, merged_idepth = _merged_per_pixel(uv, idepth, width)
+    assert merged_uv.tolist() == [[float(u), float(v)] for v, u in raster]
+    np.testing.assert_allclose(merged_idepth, [np.mean(by_pixel[key]) for key in raster], rtol=1e-12)
+    assert [2.0, 4.0] in merged_uv.tolist() and [-0.0, 0.0] in merged_uv.tolist()  # 2.5 -> 2, 3.5 -> 4, -0.5 -> -0
