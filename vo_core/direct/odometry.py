@@ -775,6 +775,7 @@ class DirectOdometry:
         distance = cv2.distanceTransform(free, cv2.DIST_L1, 3) if not free.all() else np.full(free.shape, np.inf)
         window = self.keyframes + [new_keyframe]  # the keyframes the window optimization takes next, in its order
         images = self.window_optimizer.window_images(window)
+        T_cam_world = [se3_inverse(k.T_world_cam) for k in window]  # each target's, for every host below
         spacing = max(self.min_activation_distance, 1.0)
         grid_w = int(np.ceil(half[0] / spacing))
         taken: set[int] = set()
@@ -796,7 +797,8 @@ class DirectOdometry:
             taken.update(int(cell[i]) for i in fresh)
             chosen = candidates[np.array(fresh, dtype=int)]
             idepth, usable = optimize_for_activation(
-                immature, chosen, self._activation_targets(keyframe, window, images), self.config.immature
+                immature, chosen, self._activation_targets(keyframe, window, T_cam_world, images),
+                self.config.immature
             )
             activating = chosen[usable]
             keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
@@ -822,15 +824,15 @@ class DirectOdometry:
         low, high = ACTIVATION_DISTANCE_RANGE
         self.min_activation_distance = float(np.clip(self.min_activation_distance + step, low, high))
 
-    def _activation_targets(self, host: Keyframe, window: list[Keyframe],
+    def _activation_targets(self, host: Keyframe, window: list[Keyframe], T_cam_world: list[np.ndarray],
                             images: tuple[np.ndarray, np.ndarray]) -> ActivationTargets:
-        """Every other keyframe of the ``window`` (the new one included), as seen from ``host``; ``images`` are the
-        window's intensities in their slots (WindowOptimizer.window_images)."""
+        """Every other keyframe of the ``window`` (the new one included), as seen from ``host``; ``T_cam_world`` are
+        the window's inverse poses, ``images`` its intensities in their slots (WindowOptimizer.window_images)."""
         others = [i for i, k in enumerate(window) if k is not host]
         store, slots = images
         return ActivationTargets(
             self.camera, store, slots[others],
-            np.array([se3_inverse(window[i].T_world_cam) @ host.T_world_cam for i in others]),
+            np.array([T_cam_world[i] @ host.T_world_cam for i in others]),
             np.array([relative_affine(host.exposure, window[i].exposure, host.affine, window[i].affine)
                       for i in others], dtype=float),
         )
