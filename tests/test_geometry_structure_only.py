@@ -151,3 +151,20 @@ def test_the_iteration_budget_is_honoured_and_never_makes_points_worse(iteration
     per_point_before = np.bincount(obs_point, before**2)
     per_point_after = np.bincount(obs_point, result.errors_px**2)
     assert np.all(per_point_after <= per_point_before * (1 + 1e-9))
+
+
+def test_stopping_at_convergence_gives_the_answer_of_every_iteration():
+    """Points stop once their step is below the parameter tolerance: with noisy observations (so that the optimum
+    is not the truth) they end where all ten iterations take them, with the same inliers."""
+    poses, points, obs_point, obs_pose, obs_uv, obs_level, rng = scene(seed=5)
+    noisy_uv = obs_uv + rng.normal(0.0, 1.0, obs_uv.shape)
+    start = points + rng.normal(0.0, 0.05, points.shape)
+    args = (CAMERA, poses, start, obs_point, obs_pose, noisy_uv, obs_level)
+
+    stopped = refine_points(*args)
+    every_iteration = refine_points(*args, parameter_tolerance=0.0)
+
+    assert np.median(np.linalg.norm(every_iteration.points - points, axis=1)) > 1e-3  # the optimum is not the truth
+    relative = np.linalg.norm(stopped.points - every_iteration.points, axis=1) / np.linalg.norm(points, axis=1)
+    assert relative.max() < 1e-7
+    np.testing.assert_array_equal(stopped.inlier, every_iteration.inlier)
