@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
+import numba
 import numpy as np
 
 from vo_core.features.config import OrbConfig
@@ -246,10 +247,10 @@ class OrbExtractor:
     # ---------------------------------------------------------------------------- orientation
 
     @cached_property
-    def _disc_half_widths(self) -> tuple[np.ndarray, np.ndarray]:
-        """Offsets d = -r..r of the rows of the disc of radius r = patch_size // 2 and each row's half width
-        (ORB-SLAM2 umax): round(sqrt(r^2 - d^2)) near the centre, and near the top and bottom the transpose of
-        those rows, so that the disc is symmetric about its diagonal and its columns have the same half widths."""
+    def _disc_half_widths(self) -> np.ndarray:
+        """The half width of each row d = -r..r of the disc of radius r = patch_size // 2 (ORB-SLAM2 umax):
+        round(sqrt(r^2 - d^2)) near the centre, and near the top and bottom the transpose of those rows, so that
+        the disc is symmetric about its diagonal and its columns have the same half widths."""
         radius = self.config.patch_size // 2
         diagonal = radius * np.sqrt(2.0) / 2.0
         near = np.arange(int(np.floor(diagonal + 1)) + 1)
@@ -257,27 +258,12 @@ class OrbExtractor:
         half[near] = np.rint(np.sqrt(radius**2 - near**2)).astype(int)
         for row in range(int(np.ceil(diagonal)), radius + 1):
             half[row] = near[half[near] >= row].max()  # the widest column of the central rows reaching this row
-        offsets = np.arange(-radius, radius + 1)
-        return offsets, half[np.abs(offsets)]
+        return half[np.abs(np.arange(-radius, radius + 1))]
 
     def _orientation(self, image: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Angle in degrees of the intensity centroid (m10, m01) of the disc around each corner (Rosin 1999,
-        ORB-SLAM2 IC_Angle). Corners are ``border`` >= the disc radius inside the level, so the disc fits.
-
-        The disc is symmetric: m01 = sum over its rows of dv (sum of the row's run of pixels), and m10 the same
-        over its columns. Runs come from one integral image, so a corner costs two look-ups per disc row and
-        column instead of one per disc pixel."""
-        offsets, half = self._disc_half_widths
-        height, width = image.shape
-        # Exact integer sums; int32 is enough unless the whole image could overflow it.
-        whole_max = int(np.iinfo(np.uint8).max) * width * height
-        depth = cv2.CV_32S if whole_max <= np.iinfo(np.int32).max else cv2.CV_64F
-        integral = cv2.integral(image, sdepth=depth)  # (H + 1, W + 1): sum over rows < r, columns < c
-        x, y = xy[:, 0, None], xy[:, 1, None]
-        row_runs = _box_sums(integral, y + offsets, y + offsets + 1, x - half, x + half + 1)
-        column_runs = _box_sums(integral, y - half, y + half + 1, x + offsets, x + offsets + 1)
-        m01 = row_runs.astype(np.float64) @ offsets
-        m10 = column_runs.astype(np.float64) @ offsets
+        ORB-SLAM2 IC_Angle). Corners are ``border`` >= the disc radius inside the level, so the disc fits."""
+        m10, m01 = _disc_moments(image, np.ascontiguousarray(xy, dtype=np.int64), self._disc_half_widths)
         return np.degrees(np.arctan2(m01, m10)) % FULL_CIRCLE_DEG
 
     # ---------------------------------------------------------------------------- descriptors
@@ -423,17 +409,25 @@ def _strongest_per_run(order: np.ndarray, response: np.ndarray, run_starts: np.n
 # ------------------------------------------------------------------------------------------------ helpers
 
 
-def _box_sums(
-    integral: np.ndarray, top: np.ndarray, bottom: np.ndarray, left: np.ndarray, right: np.ndarray
-) -> np.ndarray:
-    """Sums of the image over rows [top, bottom) and columns [left, right), from its integral image."""
-    flat, stride = integral.ravel(), integral.shape[1]
-    return (
-        flat[bottom * stride + right]
-        - flat[top * stride + right]
-        - flat[bottom * stride + left]
-        + flat[top * stride + left]
-    )
+@numba.njit(cache=True, nogil=True)
+def _disc_moments(image: np.ndarray, xy: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m10, m01) of each corner's disc, whose row at offset d = -r..r spans columns -half[d]..half[d]: the sums
+    of u I(x + u, y + d) and d I(x + u, y + d), exact in integers (one pass over the disc's pixels, as IC_Angle)."""
+    radius = (len(half) - 1) // 2
+    m10, m01 = np.empty(len(xy)), np.empty(len(xy))
+    for i in range(len(xy)):
+        x, y = xy[i, 0], xy[i, 1]
+        sum_u, sum_v = 0, 0
+        for d in range(-radius, radius + 1):
+            row_sum, weighted = 0, 0
+            for u in range(-half[d + radius], half[d + radius] + 1):
+                value = np.int64(image[y + d, x + u])
+                row_sum += value
+                weighted += u * value
+            sum_u += weighted
+            sum_v += d * row_sum
+        m10[i], m01[i] = sum_u, sum_v
+    return m10, m01
 
 
 def _cells(length: int, cell_size: int) -> tuple[int, int]:
