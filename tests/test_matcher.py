@@ -14,6 +14,7 @@ from vo_core.features.matcher import (
     fundamental_matrix,
     hamming,
     hamming_rows,
+    least_median_descriptors,
     match_by_bow,
     match_exhaustive,
     orientation_consistent,
@@ -357,3 +358,28 @@ def test_empty_inputs_give_empty_matches(homography_pair):
         match_exhaustive(features_a, empty, max_distance=50, ratio=0.9),
     ):
         assert len(idx[0]) == len(idx[1]) == 0
+
+
+def test_least_median_descriptor_is_orb_slam2s_distinctive_descriptor():
+    """Each group keeps the descriptor with the least median distance to its group, itself included (the lower
+    median of an even count, the first among equals), as MapPoint::ComputeDistinctiveDescriptors does."""
+    rng = np.random.default_rng(4)
+    counts = [1, 2, 3, 4, 7, 12]
+    descriptors = rng.integers(0, 256, (sum(counts), 32), dtype=np.uint8)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+
+    chosen = least_median_descriptors(descriptors, starts)
+
+    for group, (first, end) in enumerate(zip(starts[:-1], starts[1:])):
+        distances = _bits(descriptors[first:end])[:, None, :] != _bits(descriptors[first:end])[None, :, :]
+        medians = np.sort(distances.sum(axis=2), axis=1)[:, (end - first - 1) // 2]
+        assert chosen[group] == first + int(np.argmin(medians))
+
+
+def test_least_median_descriptor_avoids_an_outlying_view():
+    """Two views of a point that agree and one that does not (a wrong match): one of the two is kept."""
+    view = np.random.default_rng(5).integers(0, 256, 32, dtype=np.uint8)
+    close = view.copy()
+    close[0] ^= 0b11  # two bits away
+    far = ~view
+    assert least_median_descriptors(np.stack([far, view, close]), np.array([0, 3]))[0] in (1, 2)

@@ -21,7 +21,7 @@ import numpy as np
 from scipy import sparse
 
 from vo_core.features.config import OrbConfig
-from vo_core.features.matcher import hamming_within
+from vo_core.features.matcher import least_median_descriptors
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector, InvertedIndex
 from vo_core.geometry.camera import PinholeCamera
@@ -295,9 +295,8 @@ class FeatureMap:
 
     def representative_descriptors(self, point_ids: np.ndarray) -> None:
         """ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors: each point's descriptor becomes the one of its
-        observations with the least median Hamming distance to the others. All points at once: their
-        observations' descriptors padded into a (points, observations, 32) block, the distances of every pair
-        within a point from it, invalid slots pushed to the end of each sorted row."""
+        observations with the least median Hamming distance to the others (a compiled pass over each point's
+        observations, side by side)."""
         table = self.observations()
         wanted = np.isin(table.point, point_ids)
         order = np.argsort(table.point[wanted], kind="stable")
@@ -305,17 +304,9 @@ class FeatureMap:
         if len(points) == 0:
             return
         descriptors = self.descriptors_of(table.keyframe[wanted][order], table.feature[wanted][order])
-        unique, start, count = np.unique(points, return_index=True, return_counts=True)
-        slot = np.arange(len(points)) - np.repeat(start, count)
-        block = np.zeros((len(unique), count.max(), descriptors.shape[1]), np.uint8)
-        block[np.repeat(np.arange(len(unique)), count), slot] = descriptors
-        valid = np.arange(count.max())[None, :] < count[:, None]
-        distance = hamming_within(block).astype(float)
-        distance[~(valid[:, :, None] & valid[:, None, :])] = np.inf
-        middle = np.broadcast_to(((count - 1) // 2)[:, None, None], (len(unique), count.max(), 1))
-        median = np.take_along_axis(np.sort(distance, axis=2), middle, axis=2)[:, :, 0]
-        best = np.argmin(np.where(valid, median, np.inf), axis=1)
-        self.points.descriptor[unique] = block[np.arange(len(unique)), best]
+        unique, start = np.unique(points, return_index=True)
+        best = least_median_descriptors(descriptors, np.append(start, len(points)))
+        self.points.descriptor[unique] = descriptors[best]
 
     def descriptors_of(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> np.ndarray:
         """The ORB descriptor (L, 32) of each observation (keyframe, feature)."""

@@ -77,10 +77,28 @@ def hamming(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def hamming_within(groups: np.ndarray) -> np.ndarray:
-    """(G, M, M) Hamming distances between the M descriptors of each of G groups ((G, M, 32) uint8)."""
-    words = np.ascontiguousarray(groups, dtype=np.uint8).view(np.uint64)  # (G, M, 4)
-    return _popcount_words(words[:, :, None, :] ^ words[:, None, :, :])
+def least_median_descriptors(descriptors: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """For each group of descriptors (rows ``starts[g]:starts[g + 1]`` of ``descriptors`` (L, 32)), the row of the
+    one whose median Hamming distance to the group's descriptors (itself included) is least, the first among
+    equals: ORB-SLAM2 MapPoint::ComputeDistinctiveDescriptors, the lower median for an even count."""
+    return _least_median_rows(_words(descriptors), np.asarray(starts, np.int64))
+
+
+@numba.njit(cache=True, nogil=True)
+def _least_median_rows(words, starts):
+    best_rows = np.empty(len(starts) - 1, np.int64)
+    for g in range(len(starts) - 1):
+        first, count = starts[g], starts[g + 1] - starts[g]
+        distances = np.empty(count, np.int64)
+        best_median = DESCRIPTOR_BITS + 1
+        best_rows[g] = first
+        for i in range(count):
+            for j in range(count):
+                distances[j] = _hamming_words(words[first + i], words[first + j])
+            median = np.sort(distances)[(count - 1) // 2]
+            if median < best_median:
+                best_median, best_rows[g] = median, first + i
+    return best_rows
 
 
 def hamming_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -466,7 +484,7 @@ __all__ = [
     "fundamental_matrix",
     "hamming",
     "hamming_rows",
-    "hamming_within",
+    "least_median_descriptors",
     "match_by_bow",
     "orientation_consistent",
     "search_by_projection",
