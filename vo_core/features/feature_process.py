@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import multiprocessing
 import os
 import signal
@@ -170,6 +171,9 @@ def _serve(connection: Connection) -> None:
             connection.send((False, error))
             return
         connection.send((True, None))
+        # What the process holds before the map (modules, numba's dispatchers and types) is never garbage: out of the
+        # collector's sight, the full collections the growing map triggers take half the time (parking: 0.16 -> 0.09 s).
+        gc.freeze()
         os.nice(niceness)  # from here: the start (imports, vocabulary) is waited for by the run's first keyframes
         while (request := connection.recv()) is not None:
             name, args = request
