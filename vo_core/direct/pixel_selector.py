@@ -144,17 +144,12 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
     level-0 pixel at least ``border`` inside the image (one more on the right) whose level's |grad|^2 (``grad_sq``,
     the level's pixel under it: ``scale`` = 2^-level) passes its block's threshold times ``weight`` and ``factor``.
 
-    One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size. What
-    depends on a column alone (its pixel on the level, its threshold block) is looked up once per call."""
+    One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size. Each
+    row's and column's pixel on the level and threshold block are looked up once per call."""
     h, w = chosen.shape
-    level_h, level_w = grad_sq.shape
-    h_blocks, w_blocks = thresholds.shape
+    level_row, block_row = _level_and_block(h, scale, grad_sq.shape[0], block, thresholds.shape[0])
+    level_col, block_col = _level_and_block(w, scale, grad_sq.shape[1], block, thresholds.shape[1])
     scaled_thresholds = thresholds * weight * factor
-    level_col = np.empty(w, np.int64)
-    block_col = np.empty(w, np.int64)
-    for x in range(w):
-        level_col[x] = min(int(x * scale + scale / 2), level_w - 1)
-        block_col[x] = min(x // block, w_blocks - 1)
     x_lo, x_hi = border, w - border - 1
     for cell_row in range(cos_angle.shape[0]):
         y0 = cell_row * cell
@@ -167,8 +162,7 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
             best, best_y, best_x = 0.0, -1, -1
             cos_a, sin_a = cos_angle[cell_row, cell_col], sin_angle[cell_row, cell_col]
             for y in range(max(y0, border), min(y1, h - border)):
-                level_y = min(int(y * scale + scale / 2), level_h - 1)
-                block_y = min(y // block, h_blocks - 1)
+                level_y, block_y = level_row[y], block_row[y]
                 for x in range(max(x0, x_lo), min(x1, x_hi)):
                     if grad_sq[level_y, level_col[x]] > scaled_thresholds[block_y, block_col[x]]:
                         score = abs(packed[y, x, 1] * cos_a + packed[y, x, 2] * sin_a)
@@ -176,6 +170,18 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
                             best, best_y, best_x = score, y, x
             if best_y >= 0:
                 chosen[best_y, best_x] = kind
+
+
+@numba.njit(cache=True, nogil=True)
+def _level_and_block(length, scale, level_length, block, num_blocks):
+    """For each level-0 index 0..``length``-1 along one axis: its pixel on the level (``scale`` = 2^-level, the
+    level's pixel under it) and its threshold block."""
+    level = np.empty(length, np.int64)
+    blocks = np.empty(length, np.int64)
+    for i in range(length):
+        level[i] = min(int(i * scale + scale / 2), level_length - 1)
+        blocks[i] = min(i // block, num_blocks - 1)
+    return level, blocks
 
 
 @numba.njit(cache=True, nogil=True)
