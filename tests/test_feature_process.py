@@ -12,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
+from vo_core.features import feature_process
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_odometry import FeatureOdometry
-from vo_core.features import feature_process
 from vo_core.features.feature_process import FeatureProcess
 from vo_core.synthetic import make_sequence
 
