@@ -19,7 +19,7 @@ from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.window import WindowOptimizer
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
-from vo_core.geometry.lie import se3_exp, se3_inverse, so3_log
+from vo_core.geometry.lie import se3_exp, se3_inverse, so3_log, transform_points
 from vo_core.synthetic import make_sequence
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory
@@ -150,6 +150,42 @@ def test_a_marginalization_after_the_optimization_is_that_of_a_fresh_optimizer()
         window = optimizer()
         window.optimize(keyframes, MarginalizationPrior())
         np.testing.assert_array_equal(prior(window, order), prior(optimizer(), order))
+
+
+def test_a_residual_out_of_view_when_an_optimization_ends_is_dropped_for_good():
+    """As DSO deletes a residual that is out of bounds when an optimization ends: each host keeps, per target, which
+    of its points were out of that keyframe's view; the next optimizations do not evaluate those residuals, even
+    where the point would be back in view, and a pair whose residuals are all dropped adds nothing to the system."""
+    sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
+    keyframes = true_window(sequence)
+    window = optimizer()
+    window.optimize(keyframes, MarginalizationPrior())
+    first, last = keyframes[0], keyframes[-1]
+    camera = first.camera
+    for host in (first, last):
+        other = last if host is first else first
+        in_other = transform_points(se3_inverse(other.T_world_cam), host.active_points_world())
+        uv = camera.project(in_other)
+        inside = (in_other[:, 2] > 0) & np.all((uv > 6) & (uv < [camera.width - 7, camera.height - 7]), axis=1)
+        outside = (in_other[:, 2] <= 0) | np.any((uv < 0) | (uv > [camera.width, camera.height]), axis=1)
+        dropped = host.dropped_residuals[other.frame_index]
+        assert outside.any() and inside.any()  # the test sees both kinds
+        assert dropped[outside].all() and not dropped[inside].any()
+
+    # Drop every residual between the two newest keyframes, both ways: they leave each other alone.
+    newest, before = keyframes[-1], keyframes[-2]
+    newest.dropped_residuals[before.frame_index] = np.ones(len(newest.active_idepth), bool)
+    before.dropped_residuals[newest.frame_index] = np.ones(len(before.active_idepth), bool)
+    points = window._window_points(keyframes)
+    system = window._linearize(keyframes, points, [k.T_world_cam for k in keyframes],
+                               [np.asarray(k.affine, float) for k in keyframes],
+                               np.concatenate([k.active_idepth for k in keyframes]), MarginalizationPrior())
+    n = len(keyframes)
+    assert not system.H_kk[8 * (n - 2):8 * (n - 1), 8 * (n - 1):].any()
+    assert system.H_kk[:8 * (n - 2), 8 * (n - 1):].any()  # the newest still meets the older keyframes
+    window.optimize(keyframes, MarginalizationPrior())
+    assert newest.dropped_residuals[before.frame_index].all()
+    assert before.dropped_residuals[newest.frame_index].all()
 
 
 def test_steps_with_a_fixed_scale_keep_the_window_scale():

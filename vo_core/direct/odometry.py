@@ -79,6 +79,9 @@ class Keyframe:
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))  # inverse depths in the host
     active_color: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN)), np.float32))
     active_grad_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN)), np.float32))
+    # Target keyframe's frame index -> (N,) bool over the first N active points: their residual in that keyframe
+    # was out of its view when the last window optimization ended, and is dropped for good (window.py).
+    dropped_residuals: dict = field(default_factory=dict)
     immature: ImmaturePoints | None = None
     # The tracking reference made on this keyframe: every active point of the window projected into it
     # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.

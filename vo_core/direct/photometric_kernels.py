@@ -316,7 +316,7 @@ def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, 
 
 @numba.njit(cache=True, nogil=True, parallel=True)
 def window_linearization(rays, center_rays, idepth, color, host_weight, host_start, images, image_slots, R, t, R0, t0,
-                         adjoint0, factor, offset, host_b, active, intrinsics, border, huber, outlier_energy,
+                         adjoint0, factor, offset, host_b, active, dropped, intrinsics, border, huber, outlier_energy,
                          weight_component):
     """The Gauss-Newton system of the window's photometric energy: every point of every active host keyframe in
     every other keyframe (DSO's PointFrameResidual::linearize and the accumulation of EnergyFunctional, all
@@ -327,7 +327,7 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
     ``host_start[h]:host_start[h + 1]``; keyframe k's level-0 intensity is ``images[image_slots[k]]``. Keyframe
     pairs are indexed [host, target]: (R, t) is T_target_host, (R0, t0) its first estimate, ``factor``/``offset``
     the affine transfer (affine.py), ``adjoint0[target]`` is Ad(T0_target_world); ``host_b[h]`` is b of the host;
-    only hosts with ``active[h]`` are linearized.
+    only hosts with ``active[h]`` are linearized, and no residual with ``dropped[target, i]`` (it counts as out).
 
     Residual of pattern pixel k: r = I_target(warp) - (factor * color + offset), Huber-weighted, times the
     squared mean of the host and target gradient weights w = sqrt(c / (c + |grad|^2)), c = ``weight_component``.
@@ -356,8 +356,8 @@ def window_linearization(rays, center_rays, idepth, color, host_weight, host_sta
     for j in numba.prange(len(blocks)):
         block_energy[j] = _linearize_points(
             blocks[j, 0], blocks[j, 1], blocks[j, 2], rays, center_rays, idepth, color, host_weight, images,
-            image_slots, R, t, R0, t0, adjoint0, factor, offset, host_b, intrinsics, border, huber, outlier_energy,
-            weight_component, status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
+            image_slots, R, t, R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber,
+            outlier_energy, weight_component, status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
     energy, H_kk, b_k = _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
     return energy, status, H_kk, b_k, H_pk, H_pp, b_p
 
@@ -421,8 +421,8 @@ def _point_blocks(host_start, active):
 
 @numba.njit(cache=True, nogil=True)
 def _linearize_points(h, first, end, rays, center_rays, idepth, color, host_weight, images, image_slots, R, t, R0, t0,
-                      adjoint0, factor, offset, host_b, intrinsics, border, huber, outlier_energy, weight_component,
-                      status, H_pk, H_pp, b_p, M_block, m_block):
+                      adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber, outlier_energy,
+                      weight_component, status, H_pk, H_pp, b_p, M_block, m_block):
     """window_linearization's work for points first..end-1 of host keyframe h: their rows of status, H_pk, H_pp and
     b_p, and in ``M_block[tg]`` / ``m_block[tg]`` their part of each target's local 9-parameter system (upper
     triangle). Returns their energy."""
@@ -447,6 +447,8 @@ def _linearize_points(h, first, end, rays, center_rays, idepth, color, host_weig
         M = M_block[tg]
         m = m_block[tg]
         for i in range(first, end):
+            if dropped[tg, i]:
+                continue
             point_energy = 0.0
             out = False
             for k in range(pattern):

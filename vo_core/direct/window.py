@@ -20,6 +20,12 @@ gradient-dependent weights). One iteration of Levenberg-Marquardt:
    then each point's step by back substitution;
 3. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100), as DSO.
 
+A residual that is out of view when an optimization ends (its pattern leaves the target image, or the point is
+behind the target camera) is dropped for good (``Keyframe.dropped_residuals``), as DSO deletes residuals that are out
+of bounds then: a point at the edge of a keyframe's view no longer flickers in and out of the energy from one
+optimization to the next. DSO deletes the outliers too; that made parking's ATE 1.5x worse (median of 5 seeds,
+BENCHMARKS.md), and outliers stay in the set, to be judged again at each optimization.
+
 Gauge: the oldest keyframe of the window (pose and affine) is held fixed. The photometric energy does not see
 the scale either: keyframes that left the window are kept as a prior (marginalization.py) that holds it, and
 once there is one, from the second step of an optimization on, the keyframe step loses its component along the
@@ -68,6 +74,7 @@ class _WindowPoints:
     # in images[image_slots[k]]: one array, not a numba typed list, whose first construction in a process costs 0.6 s.
     images: np.ndarray
     image_slots: np.ndarray  # (K,) int64
+    dropped: np.ndarray  # (K, P) bool: point i's residual in keyframe k is no longer evaluated (dropped_residuals)
 
 
 @dataclass
@@ -190,12 +197,12 @@ class WindowOptimizer:
         pattern_uv = uv[:, None, :] + PATTERN[None]  # (P, 8, 2)
         grad_sq = np.concatenate([k.active_grad_sq for k in keyframes])
         camera = keyframes[0].camera
+        host_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return _WindowPoints(
             camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3), camera.unproject(uv),
             np.concatenate([k.active_color for k in keyframes]),
             np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
-            np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
-            *self.window_images(keyframes),
+            host_start, *self.window_images(keyframes), _dropped_residuals(keyframes, host_start),
         )
 
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
@@ -217,7 +224,7 @@ class WindowOptimizer:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
-                np.array([ab[1] for ab in affines], float), active, keyframes[0].camera.intrinsics,
+                np.array([ab[1] for ab in affines], float), active, points.dropped, keyframes[0].camera.intrinsics,
                 self.config.border, self.huber, self.outlier_energy, self.weight_component,
             )
         if start is not None:
@@ -267,6 +274,10 @@ class WindowOptimizer:
             keyframe.active_idepth = idepth[offset:offset + count][kept]
             keyframe.active_color = keyframe.active_color[kept]
             keyframe.active_grad_sq = keyframe.active_grad_sq[kept]
+            keyframe.dropped_residuals = {
+                target.frame_index: system.status[k, offset:offset + count][kept] == POINT_OUT
+                for k, target in enumerate(keyframes) if target is not keyframe
+            }
             offset += count
         return keep
 
@@ -293,6 +304,18 @@ class _System:
     @property
     def residuals(self) -> int:
         return int(np.count_nonzero(self.status == POINT_IN))
+
+
+def _dropped_residuals(keyframes: list, host_start: np.ndarray) -> np.ndarray:
+    """(K, P) the residuals each host keyframe has dropped, by target (Keyframe.dropped_residuals): none for a
+    target it has no entry for (one new to the window) or for points newer than the entry (activated since)."""
+    dropped = np.zeros((len(keyframes), host_start[-1]), bool)
+    for host, keyframe in enumerate(keyframes):
+        for target, other in enumerate(keyframes):
+            entry = keyframe.dropped_residuals.get(other.frame_index)
+            if entry is not None:
+                dropped[target, host_start[host]:host_start[host] + len(entry)] = entry
+    return dropped
 
 
 def _scale_direction(poses: list) -> np.ndarray:
