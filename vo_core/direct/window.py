@@ -65,7 +65,7 @@ POINT_IN, POINT_OUT, POINT_OUTLIER = 0, 1, 2
 class _WindowPoints:
     """The active points of all keyframes, host by host, and the keyframes' images, as the kernel needs them."""
 
-    rays: np.ndarray  # (P, 8, 3) K^-1 (u, v, 1) of the pattern pixels
+    pattern_rays: np.ndarray  # (8, 3) K^-1 (du, dv, 0): each pattern pixel's ray minus its point's
     center_rays: np.ndarray  # (P, 3) K^-1 (u, v, 1) of the points
     color: np.ndarray  # (P, 8) host intensities
     weight: np.ndarray  # (P, 8) host gradient weights sqrt(c / (c + |grad|^2))
@@ -194,12 +194,11 @@ class WindowOptimizer:
     def _window_points(self, keyframes: list) -> _WindowPoints:
         counts = [len(k.active_idepth) for k in keyframes]
         uv = np.concatenate([k.active_uv for k in keyframes])
-        pattern_uv = uv[:, None, :] + PATTERN[None]  # (P, 8, 2)
         grad_sq = np.concatenate([k.active_grad_sq for k in keyframes])
         camera = keyframes[0].camera
         host_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return _WindowPoints(
-            camera.unproject(pattern_uv.reshape(-1, 2)).reshape(-1, len(PATTERN), 3), camera.unproject(uv),
+            np.c_[PATTERN / camera.intrinsics[:2], np.zeros(len(PATTERN))], camera.unproject(uv),
             np.concatenate([k.active_color for k in keyframes]),
             np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             host_start, *self.window_images(keyframes), _dropped_residuals(keyframes, host_start),
@@ -222,7 +221,7 @@ class WindowOptimizer:
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
         with _PARALLEL_KERNEL:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
-                points.rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
+                points.pattern_rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
                 np.array([ab[1] for ab in affines], float), active, points.dropped, keyframes[0].camera.intrinsics,
                 self.config.border, self.huber, self.outlier_energy, self.weight_component,
