@@ -18,7 +18,7 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN
-from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line
+from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line, warp_ray
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 from vo_core.geometry.camera import PinholeCamera
 
@@ -351,12 +351,12 @@ def optimize_for_activation(
     if len(idepth) == 0 or len(targets.image_index) == 0:
         return idepth, np.zeros(len(idepth), dtype=bool)
     camera = targets.camera
-    pattern_uv = points.uv[index][:, None, :] + PATTERN[None]
-    rays = camera.unproject(pattern_uv.reshape(-1, 2)).reshape(len(idepth), len(PATTERN), 3)
+    pattern_rays = np.c_[PATTERN / camera.intrinsics[:2], np.zeros(len(PATTERN))]  # K^-1 (du, dv, 0)
     usable = _optimize_inverse_depths(
-        rays, idepth, points.color[index], points.weight[index] ** 2, points.energy_threshold[index], targets.images,
-        targets.image_index, targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(),
-        targets.affine[:, 0].copy(), targets.affine[:, 1].copy(), camera.intrinsics,
+        camera.unproject(points.uv[index]), pattern_rays, idepth, points.color[index], points.weight[index] ** 2,
+        points.energy_threshold[index], targets.images, targets.image_index, targets.T_target_host[:, :3, :3].copy(),
+        targets.T_target_host[:, :3, 3].copy(), targets.affine[:, 0].copy(), targets.affine[:, 1].copy(),
+        camera.intrinsics,
         float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
         float(config.min_idepth_hessian), int(config.activation_min_observations),
     )
@@ -368,23 +368,33 @@ CONVERGED_STEP_SHARE = 1e-4
 
 
 @numba.njit(cache=True, nogil=True)
-def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, image_index, R, t, factor, offset,
-                             intrinsics, huber, first_outlier_slack, iterations, min_hessian, min_observations):
+def _optimize_inverse_depths(rays, pattern_rays, idepth, color, weight_sq, threshold, images, image_index, R, t,
+                             factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
+                             min_observations):
     """optimize_for_activation's LM, point by point, on one thread (on numba's threads, its launches of one host's
-    few hundred points cost parking's run 1.2 s more CPU than they saved). ``rays`` (n, 8, 3) are the host's
-    K^-1 (u, v, 1) of the pattern pixels; target j is ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host
-    with the affine transfer (factor[j], offset[j]). ``idepth`` is optimized in place; returns the usable mask."""
-    n, n_targets = len(idepth), len(image_index)
+    few hundred points cost parking's run 1.2 s more CPU than they saved). ``rays`` (n, 3) are the host's
+    K^-1 (u, v, 1) of the points, pattern pixel k's ray is that + ``pattern_rays[k]``; target j is
+    ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host with the affine transfer (factor[j], offset[j]).
+    ``idepth`` is optimized in place; returns the usable mask."""
+    n, n_targets, pattern = len(idepth), len(image_index), len(pattern_rays)
     usable = np.zeros(n, np.bool_)
+    # R[j] pattern_rays[k]: how pattern pixel k's warp into target j differs from its point's.
+    pattern_shift = np.empty((n_targets, pattern, 3))
+    for j in range(n_targets):
+        for k in range(pattern):
+            pattern_shift[j, k, 0], pattern_shift[j, k, 1], pattern_shift[j, k, 2] = warp_ray(
+                R[j], t[j], pattern_rays[k, 0], pattern_rays[k, 1], pattern_rays[k, 2], 0.0)
+    in_bounds = np.empty(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
+    inlier = np.empty(n_targets, np.bool_)
+    trial_inlier = np.empty(n_targets, np.bool_)
+    residuals = np.empty(pattern)
+    d_idepth = np.empty(pattern)
     for i in range(n):
-        in_bounds = np.ones(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
-        inlier = np.zeros(n_targets, np.bool_)
-        trial_inlier = np.zeros(n_targets, np.bool_)
-        residuals = np.empty(rays.shape[1])
-        d_idepth = np.empty(rays.shape[1])
-        energy, H, b = _depth_system(i, idepth[i], first_outlier_slack, rays, color, weight_sq, threshold, images,
-                                     image_index, R, t, factor, offset, intrinsics, huber, in_bounds, inlier,
-                                     residuals, d_idepth)
+        in_bounds[:] = True
+        inlier[:] = False
+        energy, H, b = _depth_system(i, idepth[i], first_outlier_slack, rays, pattern_shift, color, weight_sq,
+                                     threshold, images, image_index, R, t, factor, offset, intrinsics, huber,
+                                     in_bounds, inlier, residuals, d_idepth)
         running = np.isfinite(energy) and H >= min_hessian
         usable[i] = running
         lam = 0.1
@@ -393,9 +403,9 @@ def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, 
                 break
             step = b / (H * (1.0 + lam))
             trial = idepth[i] - step
-            e_new, H_new, b_new = _depth_system(i, trial, 1.0, rays, color, weight_sq, threshold, images, image_index,
-                                                R, t, factor, offset, intrinsics, huber, in_bounds, trial_inlier,
-                                                residuals, d_idepth)
+            e_new, H_new, b_new = _depth_system(i, trial, 1.0, rays, pattern_shift, color, weight_sq, threshold,
+                                                images, image_index, R, t, factor, offset, intrinsics, huber,
+                                                in_bounds, trial_inlier, residuals, d_idepth)
             usable[i] = H_new >= min_hessian
             if e_new < energy:
                 idepth[i], energy, H, b = trial, e_new, H_new, b_new
@@ -409,8 +419,8 @@ def _optimize_inverse_depths(rays, idepth, color, weight_sq, threshold, images, 
 
 
 @numba.njit(cache=True, nogil=True)
-def _depth_system(i, idepth, outlier_slack, rays, color, weight_sq, threshold, images, image_index, R, t, factor,
-                  offset, intrinsics, huber, in_bounds, inlier, residuals, d_idepth):
+def _depth_system(i, idepth, outlier_slack, rays, pattern_shift, color, weight_sq, threshold, images, image_index, R,
+                  t, factor, offset, intrinsics, huber, in_bounds, inlier, residuals, d_idepth):
     """linearizeResidual of point i at ``idepth``, summed over the targets in order: (energy, H_dd, b_d); sets
     ``inlier`` per target and clears ``in_bounds`` where the pattern leaves the image (a 1 px margin, 2 px on the
     right and bottom, where the gradients at the four corners need a pixel beyond them) or the point falls behind
@@ -425,10 +435,11 @@ def _depth_system(i, idepth, outlier_slack, rays, color, weight_sq, threshold, i
             continue
         intensity = images[image_index[j]]
         Rj, tj = R[j], t[j]
-        for k in range(rays.shape[1]):
-            x = Rj[0, 0] * rays[i, k, 0] + Rj[0, 1] * rays[i, k, 1] + Rj[0, 2] * rays[i, k, 2] + idepth * tj[0]
-            y = Rj[1, 0] * rays[i, k, 0] + Rj[1, 1] * rays[i, k, 1] + Rj[1, 2] * rays[i, k, 2] + idepth * tj[1]
-            z = Rj[2, 0] * rays[i, k, 0] + Rj[2, 1] * rays[i, k, 1] + Rj[2, 2] * rays[i, k, 2] + idepth * tj[2]
+        xc = Rj[0, 0] * rays[i, 0] + Rj[0, 1] * rays[i, 1] + Rj[0, 2] * rays[i, 2] + idepth * tj[0]
+        yc = Rj[1, 0] * rays[i, 0] + Rj[1, 1] * rays[i, 1] + Rj[1, 2] * rays[i, 2] + idepth * tj[1]
+        zc = Rj[2, 0] * rays[i, 0] + Rj[2, 1] * rays[i, 1] + Rj[2, 2] * rays[i, 2] + idepth * tj[2]
+        for k in range(len(residuals)):
+            x, y, z = xc + pattern_shift[j, k, 0], yc + pattern_shift[j, k, 1], zc + pattern_shift[j, k, 2]
             inverse_z = 1.0 / z if z != 0.0 else -1.0
             u, v = x * inverse_z, y * inverse_z
             Ku, Kv = fx * u + cx, fy * v + cy
@@ -442,7 +453,7 @@ def _depth_system(i, idepth, outlier_slack, rays, color, weight_sq, threshold, i
         if not in_bounds[j]:
             continue
         e = 0.0
-        for k in range(rays.shape[1]):
+        for k in range(len(residuals)):
             residual = residuals[k]
             magnitude = abs(residual)
             w = 1.0 if magnitude <= huber else huber / magnitude

@@ -62,8 +62,17 @@ class PyramidLevel:
 
 
 def squared_gradient(samples: np.ndarray) -> np.ndarray:
-    """|grad I|^2 of packed (..., 3) samples (intensity, d/du, d/dv), in their float32."""
-    return samples[..., 1] ** 2 + samples[..., 2] ** 2
+    """|grad I|^2 of packed (..., 3) samples (intensity, d/du, d/dv), in their float32. One compiled pass: numpy's
+    two temporaries made a keyframe's pixel selection 1 ms slower."""
+    return _squared_gradient(samples.reshape(-1, samples.shape[-1])).reshape(samples.shape[:-1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _squared_gradient(samples):
+    result = np.empty(len(samples), samples.dtype)
+    for i in range(len(samples)):
+        result[i] = samples[i, 1] * samples[i, 1] + samples[i, 2] * samples[i, 2]
+    return result
 
 
 _REMAP_COLUMNS = 4096  # cv2.remap needs maps narrower than SHRT_MAX: points are laid out in rows of this
