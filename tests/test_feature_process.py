@@ -141,3 +141,18 @@ def test_a_process_started_ahead_that_died_is_left_for_a_new_one():
         assert features._process is not ahead and features.empty
     finally:
         features.close()
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="the platform has no idle scheduling class")
+@pytest.mark.parametrize("idle", [False, True])
+def test_the_process_runs_at_the_priority_it_is_given(idle):
+    """Offline runs put the feature half's process in the idle scheduling class, on top of its niceness (so that it
+    takes a core only where tracking and the direct mapper leave one); live runs only make it nicer."""
+    features = FeatureProcess(FeatureConfig(), SEQUENCE.camera, niceness=3, idle=idle)
+    try:
+        assert features.empty  # answered: the process has set its priority
+        pid = features._process.pid
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(os.getpriority(os.PRIO_PROCESS, 0) + 3, 19)
+        assert (os.sched_getscheduler(pid) == os.SCHED_IDLE) == idle
+    finally:
+        features.close()

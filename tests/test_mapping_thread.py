@@ -5,6 +5,7 @@ reach the caller, and a mapper that falls behind catching up and saying so."""
 from __future__ import annotations
 
 import argparse
+import os
 import threading
 
 import numpy as np
@@ -12,8 +13,10 @@ import pytest
 
 from app.cli import _live_overrides
 from test_fdmo_system import FAULT_START, SMOOTH, run
+from vo_core.config import load_config
 from vo_core.events import EventKind, FrameResult
 from vo_core.mapping_thread import MappingThread
+from vo_core.system import Odometry
 
 THREADED = ["mapping.threaded=true"]
 LIVE = ["mapping.wait_for_keyframes=false", "direct.tracker.rotation_hypotheses=false",
@@ -269,3 +272,18 @@ def test_a_mapper_that_falls_behind_leaves_frames_untraced_and_says_how_many():
 def test_the_mapping_mode_of_a_run(flags, expected):
     args = argparse.Namespace(**{"mapping": None, "realtime": False, "viser": False, **flags})
     assert _live_overrides(args) == expected
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="the platform has no idle scheduling class")
+@pytest.mark.parametrize("live", [False, True])
+def test_the_feature_process_is_idle_offline_and_only_nicer_live(live):
+    config = load_config(None, ["method=fdmo", *THREADED, *(LIVE if live else [])])
+    odometry = Odometry(config, SMOOTH.camera)
+    try:
+        assert odometry.features.empty  # answered: the process has set its priority
+        pid = odometry.features._process.pid
+        niceness = config.mapping.live_feature_niceness if live else config.mapping.feature_niceness
+        assert os.getpriority(os.PRIO_PROCESS, pid) == min(os.getpriority(os.PRIO_PROCESS, 0) + niceness, 19)
+        assert (os.sched_getscheduler(pid) == os.SCHED_IDLE) == (not live)
+    finally:
+        odometry.close()

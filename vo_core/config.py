@@ -112,6 +112,11 @@ class MappingConfig:
     # 10: 146-165). Measured in BENCHMARKS.md (Real time).
     feature_niceness: int = 19
     live_feature_niceness: int = 10
+    # Offline the feature process also runs in Linux's idle scheduling class (SCHED_IDLE), below any niceness: at 19
+    # alone, parking's window optimizations took 3.44 s beside it against 2.87 s without it; idle, 3.1 s (threaded
+    # runs, 4 rounds: teddy 8.72 -> 8.48 s, parking 10.33 -> 10.16 s, KITTI the same). Not live, where a suspect
+    # frame's check waits for the feature map.
+    feature_idle_scheduling: bool = True
     # How often Python lets another thread take the interpreter lock (sys.setswitchinterval) while mapping threads
     # run; Python's own 5 ms made tracking wait up to 5 ms each time it came back from a compiled kernel while the
     # mapper ran Python (tracking does that a dozen times a frame). Measured in BENCHMARKS.md (Real time).

@@ -90,13 +90,14 @@ def maps_features_in_a_process(config: Config) -> bool:
     return config.method == "fdmo" and config.mapping.threaded
 
 
-def _feature_half(config: FeatureConfig, camera: PinholeCamera, process_niceness: int | None):
-    """FDMO's feature half: with mapping threads in a process of its own, ``process_niceness`` nicer (its Python
-    would hold the GIL the tracking and the direct mapping threads need), else (None) here."""
-    if process_niceness is not None:
+def _feature_half(config: FeatureConfig, camera: PinholeCamera, process_priority: tuple[int, bool] | None):
+    """FDMO's feature half: with mapping threads in a process of its own (its Python would hold the GIL the tracking
+    and the direct mapping threads need) at ``process_priority`` (niceness, idle scheduling class), else (None)
+    here."""
+    if process_priority is not None:
         from vo_core.features.feature_process import FeatureProcess
 
-        return FeatureProcess(config, camera, process_niceness)
+        return FeatureProcess(config, camera, *process_priority)
     from vo_core.features.feature_odometry import FeatureOdometry
 
     return FeatureOdometry(config, camera)
@@ -120,9 +121,10 @@ class Odometry:
         mapping = config.mapping
         threaded = mapping.threaded and self.front_end is None
         if config.method == "fdmo":
-            niceness = mapping.feature_niceness if mapping.wait_for_keyframes else mapping.live_feature_niceness
+            priority = (mapping.feature_niceness, mapping.feature_idle_scheduling) if mapping.wait_for_keyframes \
+                else (mapping.live_feature_niceness, False)
             in_a_process = maps_features_in_a_process(config)
-            self.features = _feature_half(config.features, camera, niceness if in_a_process else None)
+            self.features = _feature_half(config.features, camera, priority if in_a_process else None)
         # Offline the mapper never leaves a frame untraced: with the waits below, the run is the synchronous one.
         catch_up = None if mapping.wait_for_keyframes else mapping.max_queued_frames
         self.mapper = MappingThread(catch_up, "direct-mapping") if threaded else None

@@ -79,11 +79,12 @@ def _started_ahead_or_new() -> tuple[BaseProcess, Connection]:
 
 
 class FeatureProcess:
-    def __init__(self, config: FeatureConfig, camera: PinholeCamera, niceness: int = 0):
-        """``niceness``: added to the process's (os.nice), so that on a busy machine the cores go to the callers."""
+    def __init__(self, config: FeatureConfig, camera: PinholeCamera, niceness: int = 0, idle: bool = False):
+        """``niceness``: added to the process's (os.nice), so that on a busy machine the cores go to the callers;
+        ``idle``: the process also runs in the idle scheduling class, where the platform has one (_schedule_idle)."""
         self._process, self._connection = _started_ahead_or_new()
         with contextlib.suppress(ConnectionError):  # it has ended: the first call says so
-            self._connection.send((config, camera, niceness))
+            self._connection.send((config, camera, niceness, idle))
         self._lock = threading.Lock()  # one call on the pipe at a time, from whichever thread
         self._ready = False  # the process answered that its FeatureOdometry is built
 
@@ -162,7 +163,7 @@ def _serve(connection: Connection) -> None:
             _load_kernels()
         except Exception:  # only a warm-up: what is wrong with the run's feature half is raised at its first call
             pass
-        config, camera, niceness = connection.recv()
+        config, camera, niceness, idle = connection.recv()
         from vo_core.features.feature_odometry import FeatureOdometry
 
         try:
@@ -175,6 +176,8 @@ def _serve(connection: Connection) -> None:
         # collector's sight, the full collections the growing map triggers take half the time (parking: 0.16 -> 0.09 s).
         gc.freeze()
         os.nice(niceness)  # from here: the start (imports, vocabulary) is waited for by the run's first keyframes
+        if idle:
+            _schedule_idle()
         while (request := connection.recv()) is not None:
             name, args = request
             try:
@@ -188,6 +191,14 @@ def _serve(connection: Connection) -> None:
     # Told to stop: every answer is sent, and nothing here needs the interpreter's teardown (0.2 s of a run's end,
     # freeing the feature map object by object).
     os._exit(0)
+
+
+def _schedule_idle() -> None:
+    """Linux's idle scheduling class (SCHED_IDLE): the process gets a core only where no other process of normal
+    priority wants it, lower than any niceness; where the platform has no such class, the niceness alone holds."""
+    if hasattr(os, "SCHED_IDLE"):
+        with contextlib.suppress(OSError):  # a sandbox that forbids it: the niceness still holds
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
 
 
 def _load_kernels() -> None:
