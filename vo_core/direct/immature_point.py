@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
-from vo_core.direct.coarse_tracker import PATTERN
+from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line, warp_ray
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 from vo_core.geometry.camera import PinholeCamera
@@ -351,9 +351,8 @@ def optimize_for_activation(
     if len(idepth) == 0 or len(targets.image_index) == 0:
         return idepth, np.zeros(len(idepth), dtype=bool)
     camera = targets.camera
-    pattern_rays = np.c_[PATTERN / camera.intrinsics[:2], np.zeros(len(PATTERN))]  # K^-1 (du, dv, 0)
     usable = _optimize_inverse_depths(
-        camera.unproject(points.uv[index]), pattern_rays, idepth, points.color[index], points.weight[index] ** 2,
+        camera.unproject(points.uv[index]), pattern_rays(camera.intrinsics), idepth, points.color[index], points.weight[index] ** 2,
         points.energy_threshold[index], targets.images, targets.image_index, targets.T_target_host[:, :3, :3].copy(),
         targets.T_target_host[:, :3, 3].copy(), targets.affine[:, 0].copy(), targets.affine[:, 1].copy(),
         camera.intrinsics,

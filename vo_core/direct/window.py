@@ -23,8 +23,8 @@ gradient-dependent weights). One iteration of Levenberg-Marquardt:
 A residual that is out of view when an optimization ends (its pattern leaves the target image, or the point is
 behind the target camera) is dropped for good (``Keyframe.dropped_residuals``), as DSO deletes residuals that are out
 of bounds then: a point at the edge of a keyframe's view no longer flickers in and out of the energy from one
-optimization to the next. DSO deletes the outliers too; that made parking's ATE 1.5x worse (median of 5 seeds,
-BENCHMARKS.md), and outliers stay in the set, to be judged again at each optimization.
+optimization to the next. DSO deletes the outliers too; that made parking's ATE twice as large (median of 5
+seeds, BENCHMARKS.md), and outliers stay in the set, to be judged again at each optimization.
 
 Gauge: the oldest keyframe of the window (pose and affine) is held fixed. The photometric energy does not see
 the scale either: keyframes that left the window are kept as a prior (marginalization.py) that holds it, and
@@ -44,7 +44,7 @@ from threadpoolctl import ThreadpoolController
 
 from vo_core.direct.affine import relative_affines
 from vo_core.direct.config import WindowConfig
-from vo_core.direct.coarse_tracker import PATTERN
+from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.photometric_kernels import window_linearization
 from vo_core.geometry.lie import se3_adjoint_compiled, se3_exp, se3_inverse_compiled
@@ -198,7 +198,7 @@ class WindowOptimizer:
         camera = keyframes[0].camera
         host_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         return _WindowPoints(
-            np.c_[PATTERN / camera.intrinsics[:2], np.zeros(len(PATTERN))], camera.unproject(uv),
+            pattern_rays(camera.intrinsics), camera.unproject(uv),
             np.concatenate([k.active_color for k in keyframes]),
             np.sqrt(self.weight_component / (self.weight_component + grad_sq)),
             host_start, *self.window_images(keyframes), _dropped_residuals(keyframes, host_start),
