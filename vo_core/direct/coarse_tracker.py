@@ -28,13 +28,13 @@ from vo_core.direct.pyramid import ImagePyramid, to_level
 from vo_core.geometry.multiview import median_shift_px
 
 PATTERN = np.array(PATTERN_8, dtype=float)  # (8, 2)
+WARP_BORDER = 2.0  # calcRes: Ku > 2 && Ku < w - 3
 
 
 def pattern_rays(intrinsics: np.ndarray) -> np.ndarray:
     """(8, 3) K^-1 (du, dv, 0) of the pattern's offsets, for intrinsics (fx, fy, cx, cy): a pinhole's unprojection
     is affine in the pixel, so pattern pixel k's ray is its point's K^-1 (u, v, 1) plus row k."""
     return np.c_[PATTERN / intrinsics[:2], np.zeros(len(PATTERN))]
-WARP_BORDER = 2.0  # calcRes: Ku > 2 && Ku < w - 3
 
 
 @dataclass

@@ -18,7 +18,9 @@ import numpy as np
 
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
-from vo_core.direct.photometric_kernels import bilinear3, bilinear_gradient, inside, search_line, warp_ray
+from vo_core.direct.photometric_kernels import (
+    bilinear3, bilinear_gradient, inside, pattern_shifts, search_line, warp_ray,
+)
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 from vo_core.geometry.camera import PinholeCamera
 
@@ -352,10 +354,10 @@ def optimize_for_activation(
         return idepth, np.zeros(len(idepth), dtype=bool)
     camera = targets.camera
     usable = _optimize_inverse_depths(
-        camera.unproject(points.uv[index]), pattern_rays(camera.intrinsics), idepth, points.color[index], points.weight[index] ** 2,
-        points.energy_threshold[index], targets.images, targets.image_index, targets.T_target_host[:, :3, :3].copy(),
-        targets.T_target_host[:, :3, 3].copy(), targets.affine[:, 0].copy(), targets.affine[:, 1].copy(),
-        camera.intrinsics,
+        camera.unproject(points.uv[index]), pattern_rays(camera.intrinsics), idepth, points.color[index],
+        points.weight[index] ** 2, points.energy_threshold[index], targets.images, targets.image_index,
+        targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(), targets.affine[:, 0].copy(),
+        targets.affine[:, 1].copy(), camera.intrinsics,
         float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
         float(config.min_idepth_hessian), int(config.activation_min_observations),
     )
@@ -377,12 +379,9 @@ def _optimize_inverse_depths(rays, pattern_rays, idepth, color, weight_sq, thres
     ``idepth`` is optimized in place; returns the usable mask."""
     n, n_targets, pattern = len(idepth), len(image_index), len(pattern_rays)
     usable = np.zeros(n, np.bool_)
-    # R[j] pattern_rays[k]: how pattern pixel k's warp into target j differs from its point's.
-    pattern_shift = np.empty((n_targets, pattern, 3))
+    pattern_shift = np.empty((n_targets, pattern, 3))  # per target: pattern_shifts
     for j in range(n_targets):
-        for k in range(pattern):
-            pattern_shift[j, k, 0], pattern_shift[j, k, 1], pattern_shift[j, k, 2] = warp_ray(
-                R[j], t[j], pattern_rays[k, 0], pattern_rays[k, 1], pattern_rays[k, 2], 0.0)
+        pattern_shifts(R[j], pattern_rays, pattern_shift[j])
     in_bounds = np.empty(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
     inlier = np.empty(n_targets, np.bool_)
     trial_inlier = np.empty(n_targets, np.bool_)
@@ -434,9 +433,7 @@ def _depth_system(i, idepth, outlier_slack, rays, pattern_shift, color, weight_s
             continue
         intensity = images[image_index[j]]
         Rj, tj = R[j], t[j]
-        xc = Rj[0, 0] * rays[i, 0] + Rj[0, 1] * rays[i, 1] + Rj[0, 2] * rays[i, 2] + idepth * tj[0]
-        yc = Rj[1, 0] * rays[i, 0] + Rj[1, 1] * rays[i, 1] + Rj[1, 2] * rays[i, 2] + idepth * tj[1]
-        zc = Rj[2, 0] * rays[i, 0] + Rj[2, 1] * rays[i, 1] + Rj[2, 2] * rays[i, 2] + idepth * tj[2]
+        xc, yc, zc = warp_ray(Rj, tj, rays[i, 0], rays[i, 1], rays[i, 2], idepth)
         for k in range(len(residuals)):
             x, y, z = xc + pattern_shift[j, k, 0], yc + pattern_shift[j, k, 1], zc + pattern_shift[j, k, 2]
             inverse_z = 1.0 / z if z != 0.0 else -1.0

@@ -99,6 +99,15 @@ def warp_ray(R, t, ray_x, ray_y, ray_z, idepth):
 
 
 @numba.njit(cache=True, nogil=True)
+def pattern_shifts(R, pattern_rays, shifts):
+    """``shifts[k]`` = R ``pattern_rays[k]``: how pattern pixel k's warp differs from its point's (``warp_ray`` is
+    affine in the ray; coarse_tracker.pattern_rays)."""
+    for k in range(len(pattern_rays)):
+        for c in range(3):
+            shifts[k, c] = R[c, 0] * pattern_rays[k, 0] + R[c, 1] * pattern_rays[k, 1] + R[c, 2] * pattern_rays[k, 2]
+
+
+@numba.njit(cache=True, nogil=True)
 def inside(u, v, width, height, border):
     """Whether a pixel lies more than ``border`` pixels inside the image (bilinear lookups stay in it)."""
     return u > border and v > border and u < width - 1 - border and v < height - 1 - border
@@ -429,7 +438,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     n_kf = len(image_slots)
     pattern = color.shape[1]
-    pattern_shift = np.empty((pattern, 3))  # R pattern_rays[k]: how pattern pixel k's warp differs from the centre's
+    pattern_shift = np.empty((pattern, 3))  # per target: pattern_shifts
     Ku = np.empty(pattern)  # the pattern pixels in the target
     Kv = np.empty(pattern)
     P = np.empty(6)
@@ -449,9 +458,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
         pair_factor, pair_offset = factor[h, tg], offset[h, tg]
         M = M_block[tg]
         m = m_block[tg]
-        for k in range(pattern):
-            pattern_shift[k, 0], pattern_shift[k, 1], pattern_shift[k, 2] = warp_ray(
-                Rc, tc, pattern_rays[k, 0], pattern_rays[k, 1], pattern_rays[k, 2], 0.0)
+        pattern_shifts(Rc, pattern_rays, pattern_shift)
         for i in range(first, end):
             if dropped[tg, i]:
                 continue

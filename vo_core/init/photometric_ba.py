@@ -45,9 +45,7 @@ class WindowFrame:
     active_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
     active_color: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
     active_grad_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
-    # Target keyframe's frame index -> (N,) bool over the first N active points: their residual in that keyframe
-    # was out of its view when the last window optimization ended, and is dropped for good (window.py).
-    dropped_residuals: dict = field(default_factory=dict)
+    dropped_residuals: dict = field(default_factory=dict)  # as Keyframe.dropped_residuals
 
     @property
     def camera(self) -> PinholeCamera:
