@@ -8,7 +8,9 @@ import pytest
 from test_direct_support import PlaneScene, pose, small_camera
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.coarse_tracker import CoarseTracker, _merged_per_pixel
-from vo_core.direct.immature_point import ActivationTargets, ImmaturePoints, optimize_for_activation
+from vo_core.direct.immature_point import (
+    ActivationCandidates, ActivationTargets, ImmaturePoints, optimize_for_activation,
+)
 from vo_core.direct.pixel_selector import PixelSelector, block_thresholds
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log
@@ -212,11 +214,33 @@ def test_activation_pulls_inverse_depths_to_the_truth_from_five_percent_off(trac
     targets = ActivationTargets(
         frames[0][0][0].camera, np.stack([frame[0].intensity for frame, _ in frames]), np.arange(len(frames)),
         np.array([se3_inverse(T_world_frame) for _, T_world_frame in frames]), np.tile([1.0, 0.0], (len(frames), 1)))
-    idepth, usable = optimize_for_activation(start, ready, targets, CONFIG.immature)
+    [(idepth, usable)] = optimize_for_activation([ActivationCandidates(start, ready, targets)], CONFIG.immature)
     assert usable.mean() > 0.9
     relative_error = np.abs(idepth[usable] - true_idepth[ready][usable]) / true_idepth[ready][usable]
     assert np.median(relative_error) < 0.01
     assert np.percentile(relative_error, 90) < 0.03
+
+
+def test_activation_of_several_hosts_at_once_gives_each_host_what_it_gets_alone(traced_points):
+    """All hosts' candidates run in one compiled call, in blocks on numba's threads: each point must still see its
+    own host's targets (here the second host's transfer is 20 levels brighter) and nothing of the other points."""
+    points, _, frames = traced_points
+    ready = np.flatnonzero(points.activatable(CONFIG.immature))
+    images = np.stack([frame[0].intensity for frame, _ in frames])
+    T_target_host = np.array([se3_inverse(T_world_frame) for _, T_world_frame in frames])
+    plain = ActivationTargets(frames[0][0][0].camera, images, np.arange(len(frames)), T_target_host,
+                              np.tile([1.0, 0.0], (len(frames), 1)))
+    brighter = ActivationTargets(frames[0][0][0].camera, images, np.arange(len(frames)), T_target_host,
+                                 np.tile([1.0, 20.0], (len(frames), 1)))
+    hosts = [ActivationCandidates(points, ready[::2], plain), ActivationCandidates(points, ready[1::2], brighter)]
+    together = optimize_for_activation(hosts, CONFIG.immature)
+    alone = [optimize_for_activation([host], CONFIG.immature)[0] for host in hosts]
+    for (idepth, usable), (idepth_alone, usable_alone) in zip(together, alone):
+        np.testing.assert_array_equal(idepth, idepth_alone)
+        np.testing.assert_array_equal(usable, usable_alone)
+    # The transfers really differ: the second host's points in the first host's targets end elsewhere.
+    in_plain_targets = optimize_for_activation([ActivationCandidates(points, ready[1::2], plain)], CONFIG.immature)[0]
+    assert np.abs(in_plain_targets[0] - together[1][0]).max() > 1e-3 * np.abs(together[1][0]).max()
 
 
 def test_a_coarse_level_holds_each_pixel_once_at_the_mean_inverse_depth_of_its_points():

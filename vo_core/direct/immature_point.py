@@ -19,7 +19,7 @@ import numpy as np
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.photometric_kernels import (
-    bilinear3, bilinear_gradient, inside, pattern_shifts, search_line, warp_ray,
+    PARALLEL_LAUNCH, bilinear3, bilinear_gradient, inside, pattern_shifts, search_line, warp_ray,
 )
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 from vo_core.geometry.camera import PinholeCamera
@@ -341,58 +341,106 @@ def _sample_pattern(level: PyramidLevel, uv: np.ndarray) -> np.ndarray:
     return level.sample(pattern_uv[..., 0], pattern_uv[..., 1])
 
 
-def optimize_for_activation(
-    points: ImmaturePoints, index: np.ndarray, targets: ActivationTargets, config: ImmatureConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """optimizeImmaturePoint for the points ``index``, from the middle of their traced interval: LM on each
-    point's inverse depth over all ``targets``, poses held fixed.
+@dataclass
+class ActivationCandidates:
+    """One host's points to activate: ``index`` into its immature ``points``, optimized in its ``targets``."""
 
-    Returns (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
+    points: ImmaturePoints
+    index: np.ndarray
+    targets: ActivationTargets
+
+
+def optimize_for_activation(
+    candidates: list[ActivationCandidates], config: ImmatureConfig
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """optimizeImmaturePoint for every host's candidates, from the middle of their traced interval: LM on each
+    point's inverse depth over all its host's targets, poses held fixed. The hosts' targets share the window's images
+    and are as many for each host (the window's other keyframes).
+
+    Returns, per host, (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
     ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
-    idepth = np.array(points.idepth[index], dtype=float)
-    if len(idepth) == 0 or len(targets.image_index) == 0:
-        return idepth, np.zeros(len(idepth), dtype=bool)
-    camera = targets.camera
-    usable = _optimize_inverse_depths(
-        camera.unproject(points.uv[index]), pattern_rays(camera.intrinsics), idepth, points.color[index],
-        points.weight[index] ** 2, points.energy_threshold[index], targets.images, targets.image_index,
-        targets.T_target_host[:, :3, :3].copy(), targets.T_target_host[:, :3, 3].copy(), targets.affine[:, 0].copy(),
-        targets.affine[:, 1].copy(), camera.intrinsics,
-        float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
-        float(config.min_idepth_hessian), int(config.activation_min_observations),
-    )
-    return idepth, usable
+    counts = [len(c.index) for c in candidates]
+    idepth = np.concatenate([np.asarray(c.points.idepth[c.index], float) for c in candidates] or [np.zeros(0)])
+    usable = np.zeros(len(idepth), dtype=bool)
+    targets = [c.targets for c in candidates]
+    if len(idepth) and len(targets[0].image_index):
+        if any(t.images is not targets[0].images for t in targets):
+            raise ValueError("optimize_for_activation: the hosts' targets must share the window's images")
+        camera = targets[0].camera
+        T_target_host = np.stack([t.T_target_host for t in targets])  # (hosts, targets, 4, 4)
+        affine = np.stack([t.affine for t in targets])
+        points = [c.points for c in candidates]
+        with PARALLEL_LAUNCH:
+            usable = _optimize_inverse_depths(
+                camera.unproject(np.concatenate([p.uv[c.index] for p, c in zip(points, candidates)])),
+                np.repeat(np.arange(len(candidates)), counts), pattern_rays(camera.intrinsics), idepth,
+                np.concatenate([p.color[c.index] for p, c in zip(points, candidates)]),
+                np.concatenate([p.weight[c.index] for p, c in zip(points, candidates)]) ** 2,
+                np.concatenate([p.energy_threshold[c.index] for p, c in zip(points, candidates)]),
+                targets[0].images, np.stack([t.image_index for t in targets]),
+                np.ascontiguousarray(T_target_host[..., :3, :3]), np.ascontiguousarray(T_target_host[..., :3, 3]),
+                np.ascontiguousarray(affine[..., 0]), np.ascontiguousarray(affine[..., 1]), camera.intrinsics,
+                float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
+                float(config.min_idepth_hessian), int(config.activation_min_observations),
+            )
+    split = np.cumsum(counts)[:-1]
+    return list(zip(np.split(idepth, split), np.split(usable, split)))
 
 
 # optimizeImmaturePoint stops once a step moves the inverse depth by less than this share of it.
 CONVERGED_STEP_SHARE = 1e-4
+# Points per block of the activation's parallel loop: a keyframe activates several hundred points of all its hosts in
+# one compiled call (one launch of numba's threads a keyframe; a launch per host cost parking's threaded run 1.2 s of
+# CPU), and each point's LM is independent of the others, so the blocks' split does not change a result.
+ACTIVATION_BLOCK = 32
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def _optimize_inverse_depths(rays, host, pattern_rays, idepth, color, weight_sq, threshold, images, image_index, R, t,
+                             factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
+                             min_observations):
+    """optimize_for_activation's LM, point by point, blocks of points on numba's threads. ``rays`` (n, 3) are the
+    points' K^-1 (u, v, 1) in their host ``host[i]``, pattern pixel k's ray is that + ``pattern_rays[k]``; target j
+    of host h is ``images[image_index[h, j]]`` at (R[h, j], t[h, j]) = T_target_host with the affine transfer
+    (factor[h, j], offset[h, j]). ``idepth`` is optimized in place; returns the usable mask."""
+    usable, pattern_shift = _activation_buffers(len(idepth), R, pattern_rays)
+    for block in numba.prange((len(idepth) + ACTIVATION_BLOCK - 1) // ACTIVATION_BLOCK):
+        first = block * ACTIVATION_BLOCK
+        _optimize_points(first, min(first + ACTIVATION_BLOCK, len(idepth)), rays, host, pattern_shift, idepth, color,
+                         weight_sq, threshold, images, image_index, R, t, factor, offset, intrinsics, huber,
+                         first_outlier_slack, iterations, min_hessian, min_observations, usable)
+    return usable
 
 
 @numba.njit(cache=True, nogil=True)
-def _optimize_inverse_depths(rays, pattern_rays, idepth, color, weight_sq, threshold, images, image_index, R, t,
-                             factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
-                             min_observations):
-    """optimize_for_activation's LM, point by point, on one thread (on numba's threads, its launches of one host's
-    few hundred points cost parking's run 1.2 s more CPU than they saved). ``rays`` (n, 3) are the host's
-    K^-1 (u, v, 1) of the points, pattern pixel k's ray is that + ``pattern_rays[k]``; target j is
-    ``images[image_index[j]]`` at (R[j], t[j]) = T_target_host with the affine transfer (factor[j], offset[j]).
-    ``idepth`` is optimized in place; returns the usable mask."""
-    n, n_targets, pattern = len(idepth), len(image_index), len(pattern_rays)
-    usable = np.zeros(n, np.bool_)
-    pattern_shift = np.empty((n_targets, pattern, 3))  # per target: pattern_shifts
-    for j in range(n_targets):
-        pattern_shifts(R[j], pattern_rays, pattern_shift[j])
+def _activation_buffers(n, R, pattern_rays):
+    """The usable mask and each (host, target) pair's pattern_shifts (outside the parallel function: numba makes
+    its array expressions parallel regions of their own)."""
+    pattern_shift = np.empty((R.shape[0], R.shape[1], len(pattern_rays), 3))
+    for h in range(R.shape[0]):
+        for j in range(R.shape[1]):
+            pattern_shifts(R[h, j], pattern_rays, pattern_shift[h, j])
+    return np.zeros(n, np.bool_), pattern_shift
+
+
+@numba.njit(cache=True, nogil=True)
+def _optimize_points(first, end, rays, host, pattern_shift, idepth, color, weight_sq, threshold, images, image_index,
+                     R, t, factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
+                     min_observations, usable):
+    """_optimize_inverse_depths for points first..end-1."""
+    n_targets, pattern = image_index.shape[1], pattern_shift.shape[2]
     in_bounds = np.empty(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
     inlier = np.empty(n_targets, np.bool_)
     trial_inlier = np.empty(n_targets, np.bool_)
     residuals = np.empty(pattern)
     d_idepth = np.empty(pattern)
-    for i in range(n):
+    for i in range(first, end):
+        h = host[i]
         in_bounds[:] = True
         inlier[:] = False
-        energy, H, b = _depth_system(i, idepth[i], first_outlier_slack, rays, pattern_shift, color, weight_sq,
-                                     threshold, images, image_index, R, t, factor, offset, intrinsics, huber,
-                                     in_bounds, inlier, residuals, d_idepth)
+        energy, H, b = _depth_system(i, idepth[i], first_outlier_slack, rays, pattern_shift[h], color, weight_sq,
+                                     threshold, images, image_index[h], R[h], t[h], factor[h], offset[h], intrinsics,
+                                     huber, in_bounds, inlier, residuals, d_idepth)
         running = np.isfinite(energy) and H >= min_hessian
         usable[i] = running
         lam = 0.1
@@ -401,9 +449,9 @@ def _optimize_inverse_depths(rays, pattern_rays, idepth, color, weight_sq, thres
                 break
             step = b / (H * (1.0 + lam))
             trial = idepth[i] - step
-            e_new, H_new, b_new = _depth_system(i, trial, 1.0, rays, pattern_shift, color, weight_sq, threshold,
-                                                images, image_index, R, t, factor, offset, intrinsics, huber,
-                                                in_bounds, trial_inlier, residuals, d_idepth)
+            e_new, H_new, b_new = _depth_system(i, trial, 1.0, rays, pattern_shift[h], color, weight_sq, threshold,
+                                                images, image_index[h], R[h], t[h], factor[h], offset[h], intrinsics,
+                                                huber, in_bounds, trial_inlier, residuals, d_idepth)
             usable[i] = H_new >= min_hessian
             if e_new < energy:
                 idepth[i], energy, H, b = trial, e_new, H_new, b_new
@@ -413,7 +461,6 @@ def _optimize_inverse_depths(rays, pattern_rays, idepth, color, weight_sq, thres
                 lam *= 5.0
             running = usable[i] and not abs(step) < CONVERGED_STEP_SHARE * abs(idepth[i])
         usable[i] = usable[i] and np.isfinite(idepth[i]) and idepth[i] > 0 and inlier.sum() >= min_observations
-    return usable
 
 
 @numba.njit(cache=True, nogil=True)

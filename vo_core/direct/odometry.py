@@ -39,7 +39,9 @@ import numpy as np
 from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_tracker import PATTERN, CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
-from vo_core.direct.immature_point import ActivationTargets, ImmaturePoints, host_pattern, optimize_for_activation
+from vo_core.direct.immature_point import (
+    ActivationCandidates, ActivationTargets, ImmaturePoints, host_pattern, optimize_for_activation,
+)
 from vo_core.direct.initialization import InitializationResult, InitializerFactory
 from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -752,12 +754,33 @@ class DirectOdometry:
         return float(visible.mean())
 
     def _activate_points(self, new_keyframe: Keyframe) -> int:
-        """activatePointsMT: converged immature points become active where the new keyframe has room.
+        """activatePointsMT: converged immature points become active where the new keyframe has room; all hosts'
+        candidates are optimized in one call."""
+        self._adapt_activation_distance()
+        hosts, candidates = self._activation_candidates(new_keyframe)
+        activated = 0
+        for (keyframe, outside), chosen, (idepth, usable) in zip(
+            hosts, candidates, optimize_for_activation(candidates, self.config.immature)
+        ):
+            immature, activating = keyframe.immature, chosen.index[usable]
+            keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
+                                immature.host_grad_sq[activating])
+            activated += int(usable.sum())
+            # Activated points leave the immature set; so do those that failed and the hopeless ones, and those
+            # outside the new keyframe, which cannot be activated now and never will (DSO deletes them).
+            remove = immature.hopeless()
+            remove[chosen.index] = True
+            remove[outside] = True
+            keyframe.immature = immature.subset(~remove)
+        return activated
+
+    def _activation_candidates(self, new_keyframe: Keyframe) -> tuple[list, list[ActivationCandidates]]:
+        """Per host with immature points: (the host, its activatable points outside the new keyframe), and its
+        candidates with their targets (the window the optimization takes next).
 
         Room is DSO's distance map: at half resolution in the new keyframe, a candidate needs a distance of
         at least ``min_activation_distance`` x its selector type to every active point (and to the candidates
         taken before it); the distance adapts so that the window holds about ``point_density`` points."""
-        self._adapt_activation_distance()
         camera = self.camera
         half = (camera.width + 1) // 2, (camera.height + 1) // 2
         T_new_world = se3_inverse(new_keyframe.T_world_cam)
@@ -782,39 +805,26 @@ class DirectOdometry:
         spacing = max(self.min_activation_distance, 1.0)
         grid_w = int(np.ceil(half[0] / spacing))
         taken: set[int] = set()
-        activated = 0
+        hosts, candidates = [], []
         for keyframe in self.keyframes:
             immature = keyframe.immature
             if immature is None or len(immature) == 0:
                 continue
-            candidates = np.flatnonzero(immature.activatable(self.config.immature))
-            points_cam = camera.unproject(immature.uv[candidates]) / immature.idepth[candidates, None]
+            activatable = np.flatnonzero(immature.activatable(self.config.immature))
+            points_cam = camera.unproject(immature.uv[activatable]) / immature.idepth[activatable, None]
             pixel, inside = half_res_pixels(transform_points(keyframe.T_world_cam, points_cam))
             pixel = np.clip(pixel, 0, [half[0] - 1, half[1] - 1])
-            far_enough = distance[pixel[:, 1], pixel[:, 0]] >= self.min_activation_distance * immature.kind[candidates]
+            far_enough = distance[pixel[:, 1], pixel[:, 0]] >= self.min_activation_distance * immature.kind[activatable]
             # New points keep the spacing among themselves: one per cell of that size (first come).
             cell = (pixel[:, 1] // spacing).astype(int) * grid_w + (pixel[:, 0] // spacing).astype(int)
             ok = inside & far_enough
             _, first = np.unique(cell[ok], return_index=True)
             fresh = [i for i in np.flatnonzero(ok)[first] if cell[i] not in taken]
             taken.update(int(cell[i]) for i in fresh)
-            chosen = candidates[np.array(fresh, dtype=int)]
-            idepth, usable = optimize_for_activation(
-                immature, chosen, self._activation_targets(keyframe, window, T_cam_world, images),
-                self.config.immature
-            )
-            activating = chosen[usable]
-            keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
-                                immature.host_grad_sq[activating])
-            activated += int(usable.sum())
-            # Activated points leave the immature set; so do those that failed and the hopeless ones.
-            remove = immature.hopeless()
-            remove[chosen] = True
-            # Points outside the new keyframe that cannot be activated now never will (DSO deletes them).
-            outside = np.zeros(len(immature), dtype=bool)
-            outside[candidates[~inside]] = True
-            keyframe.immature = immature.subset(~(remove | outside))
-        return activated
+            hosts.append((keyframe, activatable[~inside]))
+            candidates.append(ActivationCandidates(immature, activatable[np.array(fresh, dtype=int)],
+                                                   self._activation_targets(keyframe, window, T_cam_world, images)))
+        return hosts, candidates
 
     def _adapt_activation_distance(self) -> None:
         """activatePointsMT's currentMinActDist: closer spacing when the window lacks points, wider when full."""

@@ -34,7 +34,6 @@ window's scale (DSO's SOLVER_ORTHOGONALIZE_X_LATER).
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
@@ -46,7 +45,7 @@ from vo_core.direct.affine import relative_affines
 from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.marginalization import MarginalizationPrior
-from vo_core.direct.photometric_kernels import window_linearization
+from vo_core.direct.photometric_kernels import PARALLEL_LAUNCH, window_linearization
 from vo_core.geometry.lie import se3_adjoint_compiled, se3_exp, se3_inverse_compiled
 
 PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
@@ -54,10 +53,6 @@ PARAMS_PER_KEYFRAME = 8  # pose increment (v, w), a, b
 # cores are shared (a viewer, the image reader, another job) its spinning threads made window optimizations 8x
 # slower (parking: 389 ms instead of 52 ms per optimization beside a running pytest, 2 cores).
 _BLAS = ThreadpoolController()
-# The linearization's kernel runs blocks of points on numba's threads. Where neither TBB nor OpenMP is found,
-# numba's own threading layer aborts the process when two threads launch parallel kernels at once (a mapping thread
-# and an initializer's adjustment): one window linearization at a time.
-_PARALLEL_KERNEL = threading.Lock()
 POINT_IN, POINT_OUT, POINT_OUTLIER = 0, 1, 2
 
 
@@ -219,7 +214,7 @@ class WindowOptimizer:
         adjoint0 = _inverse_adjoints(first_estimates)
         factor, offset = relative_affines([k.exposure for k in keyframes], np.array(affines, float))
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
-        with _PARALLEL_KERNEL:
+        with PARALLEL_LAUNCH:
             energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.pattern_rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
