@@ -23,7 +23,7 @@ import numpy as np
 
 from vo_core.direct.affine import exposure_ratio
 from vo_core.direct.config import PATTERN_8, TrackerConfig
-from vo_core.direct.photometric_kernels import align_level, level_residuals
+from vo_core.direct.photometric_kernels import align_level, bilinear1, level_residuals
 from vo_core.direct.pyramid import ImagePyramid, to_level
 from vo_core.geometry.multiview import median_shift_px
 
@@ -103,6 +103,41 @@ def _merge_by_pixel(uv, idepth, width):
     return merged_uv, merged_idepth
 
 
+@numba.njit(cache=True, nogil=True)
+def _pattern_pixels(uv, idepth, pattern, width, height, margin):
+    """The points whose whole pattern lies at least ``margin`` inside a ``width`` x ``height`` image (mask), and
+    their pattern pixels (M, 2) with each its point's inverse depth. One compiled pass instead of numpy's
+    (N, 8, 2) temporaries, masks and repeats, on the tracking thread's wait for the reference."""
+    keep = np.zeros(len(uv), np.bool_)
+    for i in range(len(uv)):
+        inside = True
+        for k in range(len(pattern)):
+            u, v = uv[i, 0] + pattern[k, 0], uv[i, 1] + pattern[k, 1]
+            inside &= u >= margin and v >= margin and u <= width - 1 - margin and v <= height - 1 - margin
+        keep[i] = inside
+    pixels = np.empty((np.count_nonzero(keep) * len(pattern), 2))
+    pixel_idepth = np.empty(len(pixels))
+    m = 0
+    for i in np.flatnonzero(keep):
+        for k in range(len(pattern)):
+            pixels[m, 0], pixels[m, 1], pixel_idepth[m] = uv[i, 0] + pattern[k, 0], uv[i, 1] + pattern[k, 1], idepth[i]
+            m += 1
+    return keep, pixels, pixel_idepth
+
+
+@numba.njit(cache=True, nogil=True)
+def _rays_and_colors(pixels, intensity, intrinsics):
+    """float32 K^-1 (u, v, 1) of each pixel and its bilinear intensity (the pixels lie inside the image)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    rays = np.empty((len(pixels), 3), np.float32)
+    color = np.empty(len(pixels), np.float32)
+    for m in range(len(pixels)):
+        u, v = pixels[m, 0], pixels[m, 1]
+        rays[m, 0], rays[m, 1], rays[m, 2] = (u - cx) / fx, (v - cy) / fy, 1.0
+        color[m] = bilinear1(intensity, u, v)
+    return rays, color
+
+
 def huber_weight(residual: np.ndarray, threshold: float) -> np.ndarray:
     """w = 1 inside the threshold, k/|r| outside; energy w r^2 (2 - w) is the Huber cost times 2."""
     absolute = np.abs(residual)
@@ -147,22 +182,19 @@ class CoarseTracker:
         uv_level = to_level(uv, level)
         if level > 0:
             uv_level, idepth = _merged_per_pixel(uv_level, idepth, camera.width)
-        pattern_uv = uv_level[:, None, :] + PATTERN[None, :, :]  # (N, 8, 2)
-        margin = WARP_BORDER + 1.0
-        inside = camera.in_image(pattern_uv.reshape(-1, 2), border=margin).reshape(-1, len(PATTERN)).all(axis=1)
-        pattern_uv, uv_level, idepth = pattern_uv[inside], uv_level[inside], idepth[inside]
-        pixel_uv, pixel_idepth = pattern_uv.reshape(-1, 2), np.repeat(idepth, len(PATTERN))
+        inside, pixel_uv, pixel_idepth = _pattern_pixels(uv_level, idepth, PATTERN, camera.width, camera.height,
+                                                         WARP_BORDER + 1.0)
         if level > 0:
             # Neighbouring points' patterns overlap on coarse levels (a level-3 pattern spans 32 level-0 pixels):
             # each pixel is one residual, as in DSO's per-level inverse depth map, not one per pattern covering it.
             pixel_uv, pixel_idepth = _merged_per_pixel(pixel_uv, pixel_idepth, camera.width)
-        color = level_data.sample_intensity(pixel_uv[:, 0], pixel_uv[:, 1])
+        rays, color = _rays_and_colors(pixel_uv, level_data.intensity, camera.intrinsics)
         return _LevelPoints(
-            rays=camera.unproject(pixel_uv).astype(np.float32),
+            rays=rays,
             idepth=pixel_idepth.astype(np.float32),
-            color=color.astype(np.float32),
-            centre_rays=camera.unproject(uv_level),
-            centre_idepth=idepth,
+            color=color,
+            centre_rays=camera.unproject(uv_level[inside]),
+            centre_idepth=idepth[inside],
             intrinsics=camera.intrinsics,
         )
 

@@ -154,9 +154,10 @@ class WindowOptimizer:
         poses = [k.T_world_cam for k in keyframes]
         affines = [np.asarray(k.affine, float) for k in keyframes]
         system = self._linearize(keyframes, points, poses, affines, idepth, MarginalizationPrior(), only_host=leaving)
-        H_pp = system.H_pp + self.config.idepth_regularization
-        H = system.H_kk - (system.H_kp / H_pp) @ system.H_kp.T
-        b = system.b_k - (system.H_kp / H_pp) @ system.b_p
+        hosted = slice(points.host_start[leaving], points.host_start[leaving + 1])  # the other points' rows are zero
+        H_kp = system.H_kp[:, hosted] / (system.H_pp[hosted] + self.config.idepth_regularization)
+        H = system.H_kk - H_kp @ system.H_kp[:, hosted].T
+        b = system.b_k - H_kp @ system.b_p[hosted]
         frame_ids = [k.frame_index for k in keyframes]
         new_prior = prior.marginalize(frame_ids, poses, affines, H, b, leaving, self.config.marginalization_damping)
         return new_prior, int(np.count_nonzero(system.inliers))
