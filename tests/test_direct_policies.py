@@ -6,7 +6,7 @@ import numpy as np
 
 from test_direct_support import pose
 from vo_core.direct.config import KeyframeConfig
-from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
+from vo_core.direct.keyframe_policy import fraction_in_view, keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.motion_model import extrapolate, motion_hypotheses
 from vo_core.geometry.lie import se3_inverse
 
@@ -35,6 +35,19 @@ def test_marginalization_drops_keyframes_out_of_view_then_the_redundant_one():
     assert 0 not in dropped  # the first keyframe only leaves when out of view
     assert len(ids) - len(dropped) < CONFIG.max_frames
     assert keyframes_to_marginalize(ids[:4], positions[:4], np.ones(4), np.zeros(4), CONFIG) == []
+
+
+def test_the_share_of_points_in_view_counts_what_lands_in_front_of_the_viewer_and_inside_its_image():
+    intrinsics = np.array([100.0, 100.0, 49.5, 39.5])  # 100 x 80 pixels
+    uv = np.array([[u, v] for u in range(0, 100, 10) for v in range(0, 80, 10)], float)  # 80 points, all inside
+    idepth = np.full(len(uv), 0.5)  # 2 m away
+    assert fraction_in_view(uv, idepth, np.eye(4), intrinsics, 100, 80) == 1.0
+    # Half a field of view to the right (the viewer 1 m to the right at 2 m depth is 50 px): the left half leaves.
+    right = se3_inverse(pose(translation=(1.0, 0.0, 0.0)))
+    assert fraction_in_view(uv, idepth, right, intrinsics, 100, 80) == 0.5
+    # Turned around: everything is behind the viewer.
+    behind = se3_inverse(pose((0.0, np.pi, 0.0)))
+    assert fraction_in_view(uv, idepth, behind, intrinsics, 100, 80) == 0.0
 
 
 def test_constant_velocity_comes_first_and_extrapolates_the_last_motion():

@@ -8,6 +8,7 @@ keyframe. The flow weights are DSO's, relative to the image size (w + h).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from vo_core.direct.config import KeyframeConfig
@@ -78,3 +79,22 @@ def keyframes_to_marginalize(
         if chosen is not None:
             flagged.append(chosen)
     return sorted(flagged)
+
+
+@numba.njit(cache=True, nogil=True)
+def fraction_in_view(uv, idepth, T_viewer_host, intrinsics, width, height):
+    """Share of a host keyframe's points (pixels ``uv`` at inverse depths ``idepth``, at least 1e-6) that land in
+    front of a viewer and inside its image (the pixel centres from 0 to width - 1). One compiled pass: in numpy it
+    cost about 1 ms a keyframe over the window, on tracking's wait for the reference."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    R, t = T_viewer_host[:3, :3], T_viewer_host[:3, 3]
+    visible = 0
+    for i in range(len(uv)):
+        depth = 1.0 / max(idepth[i], 1e-6)
+        x, y = (uv[i, 0] - cx) / fx * depth, (uv[i, 1] - cy) / fy * depth
+        z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * depth + t[2]
+        if z > 0.0:
+            u = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * depth + t[0]) / z + cx
+            v = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * depth + t[1]) / z + cy
+            visible += u >= 0.0 and v >= 0.0 and u <= width - 1 and v <= height - 1
+    return visible / len(uv)

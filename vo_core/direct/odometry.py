@@ -43,7 +43,7 @@ from vo_core.direct.immature_point import (
     ActivationCandidates, ActivationTargets, ImmaturePoints, host_pattern, optimize_for_activation,
 )
 from vo_core.direct.initialization import InitializationResult, InitializerFactory
-from vo_core.direct.keyframe_policy import keyframes_to_marginalize, needs_keyframe
+from vo_core.direct.keyframe_policy import fraction_in_view, keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
@@ -745,13 +745,10 @@ class DirectOdometry:
             idepth = np.concatenate([idepth, keyframe.immature.idepth[traced]])
         if len(idepth) == 0:
             return 1.0
-        points = keyframe.camera.unproject(uv) / np.maximum(idepth, 1e-6)[:, None]
         T_viewer_kf = se3_inverse(viewer.T_world_cam) @ keyframe.T_world_cam
-        in_viewer = transform_points(T_viewer_kf, points)
-        front = in_viewer[:, 2] > 0
-        visible = np.zeros(len(points), dtype=bool)
-        visible[front] = self.camera.in_image(self.camera.project(in_viewer[front]))
-        return float(visible.mean())
+        camera = self.camera
+        return fraction_in_view(np.asarray(uv, float), np.asarray(idepth, float), T_viewer_kf, camera.intrinsics,
+                                camera.width, camera.height)
 
     def _activate_points(self, new_keyframe: Keyframe) -> int:
         """activatePointsMT: converged immature points become active where the new keyframe has room; all hosts'
