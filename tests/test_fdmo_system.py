@@ -305,22 +305,29 @@ def retimed_drop():
             for k, frame in enumerate(kept)]
 
 
-def test_a_jump_the_timestamps_do_not_show_is_caught_by_the_image_motion(clean_ate):
-    """After a retimed drop the image moves many times what it moved frame to frame: the frame is suspect and the
-    feature map checks it (fdmo), or the divergence is reported (direct, which keeps the pose)."""
+def test_a_jump_the_timestamps_do_not_show_is_caught_by_the_image_motion_or_lost(clean_ate):
+    """After a retimed drop nothing in the timestamps says the camera jumped, and the jump frame must not pass as
+    trusted. Either no motion hypothesis converges there (lost: fdmo recovers from the feature map, direct starts
+    again), or one does, and the image moved many times what it moved frame to frame: the frame is suspect, the
+    feature map checks it (fdmo) or the divergence is reported (direct, which keeps the pose). Which of the two
+    depends on the pixel selection's random draws (at seeds 0 and 1 one of each): both paths are taken here."""
     frames = retimed_drop()
     truth_poses = np.array([SMOOTH.ground_truth.poses[i] for i in range(FRAMES)
                             if not FAULT_START <= i < FAULT_START + FAULT_FRAMES])
     truth = Trajectory(np.array([f.timestamp for f in frames]), truth_poses)
-    ate, results, _ = run("fdmo", frames, ground_truth=truth)
-    jump = next(r for r in results if r.frame_index == FAULT_START)
-    checked = [e for e in jump.events if e.kind in (EventKind.TRACKING_CHECKED, EventKind.DIVERGENCE_DETECTED)]
-    assert checked and "a jump the timestamps do not show" in checked[0].details["reason"]
-    assert ate < 2 * clean_ate + 1e-3
-    _, direct_results, _ = run("direct", frames, ground_truth=truth)
-    reported = [e for r in direct_results if r.frame_index == FAULT_START for e in r.events
-                if e.kind is EventKind.DIVERGENCE_DETECTED]
-    assert reported and "a jump the timestamps do not show" in reported[0].details["reason"]
+    paths = set()
+    for seed in (0, 1):
+        for method, flagged in (("fdmo", (EventKind.TRACKING_CHECKED, EventKind.DIVERGENCE_DETECTED)),
+                                ("direct", (EventKind.DIVERGENCE_DETECTED,))):
+            ate, results, _ = run(method, frames, ground_truth=truth, overrides=[f"seed={seed}"])
+            jump = next(r for r in results if r.frame_index == FAULT_START)
+            lost = [e for e in jump.events if e.kind is EventKind.TRACKING_FAILED]
+            checked = [e for e in jump.events if e.kind in flagged]
+            assert lost or (checked and "a jump the timestamps do not show" in checked[0].details["reason"])
+            paths.add("lost" if lost else "image motion")
+            if method == "fdmo":
+                assert ate < 2 * clean_ate + 1e-3
+    assert paths == {"lost", "image motion"}
 
 
 def test_the_motion_prior_judges_a_gap_only_where_the_motion_has_been_predictable():

@@ -18,10 +18,11 @@ ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "assets" / "rgbd_dataset_freiburg3_teddy_first80"
 # The bundled run of --method direct (written by `fdmo run --method direct --no-rrd --out ...`, 9 decimals): the
 # move of the flowchart into system.py left it bit-identical; a change that moves it says why and writes it anew
-# (last: the coarse tracking levels hold each pixel once, so tracking converges along another path: the frames
-# before the first window optimization move by up to 0.05 mm, ATE 0.00438 -> 0.00442 m on this machine).
+# (last: pixel selection scores along DSO's 16 directions and the tracking reference's intensities are exact
+# bilinear samples, so other points are selected and the first frames move by up to 2 mm, ATE 0.00442 -> 0.00430 m
+# on this machine).
 STORED_DIRECT_RUN = ROOT / "tests" / "data" / "bundled_direct_trajectory.tum"
-# Written on an AMD EPYC with AVX-512 (2026-11-27). The first frames, up to the first window optimization, match
+# Written on an Intel Xeon (2026-11-28). The first frames, up to the first window optimization, match
 # it to 1e-9 on any CPU; after that, another CPU rounds differently inside BLAS, numpy's SIMD reductions and the
 # compiled kernels, and a discrete choice (a point activated or not) flips: measured against the file written on the
 # machines before, the first difference is 2e-5 at frame 7, growing to 1.9e-3 by frame 75. So the poses are

@@ -801,7 +801,7 @@ class DirectOdometry:
         T_cam_world = [se3_inverse(k.T_world_cam) for k in window]  # each target's, for every host below
         spacing = max(self.min_activation_distance, 1.0)
         grid_w = int(np.ceil(half[0] / spacing))
-        taken: set[int] = set()
+        taken = np.zeros(grid_w * int(np.ceil(half[1] / spacing)), bool)  # the cells new points hold
         hosts, candidates = [], []
         for keyframe in self.keyframes:
             immature = keyframe.immature
@@ -816,10 +816,11 @@ class DirectOdometry:
             cell = (pixel[:, 1] // spacing).astype(int) * grid_w + (pixel[:, 0] // spacing).astype(int)
             ok = inside & far_enough
             _, first = np.unique(cell[ok], return_index=True)
-            fresh = [i for i in np.flatnonzero(ok)[first] if cell[i] not in taken]
-            taken.update(int(cell[i]) for i in fresh)
+            fresh = np.flatnonzero(ok)[first]
+            fresh = fresh[~taken[cell[fresh]]]
+            taken[cell[fresh]] = True
             hosts.append((keyframe, activatable[~inside]))
-            candidates.append(ActivationCandidates(immature, activatable[np.array(fresh, dtype=int)],
+            candidates.append(ActivationCandidates(immature, activatable[fresh],
                                                    self._activation_targets(keyframe, window, T_cam_world, images)))
         return hosts, candidates
 
