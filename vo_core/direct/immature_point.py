@@ -393,6 +393,26 @@ def optimize_for_activation(
     return list(zip(np.split(idepth, split), np.split(usable, split)))
 
 
+@numba.njit(cache=True, nogil=True)
+def half_resolution_pixels(uv, idepth, T_viewer_host, intrinsics, width, height):
+    """Where host pixels ``uv`` at inverse depths ``idepth`` land in a viewer: the viewer's pixel at half resolution
+    (level 1, rounded half to even as np.rint), and whether they land in front of it and inside its ``width`` x
+    ``height`` image. activatePointsMT's distance map and candidates, in one compiled pass (numpy's dozen passes
+    over each host's points cost about 2 ms a keyframe)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    R, t = T_viewer_host[:3, :3], T_viewer_host[:3, 3]
+    pixel = np.empty((len(uv), 2), np.int64)
+    inside = np.empty(len(uv), np.bool_)
+    for i in range(len(uv)):
+        x, y, z = warp_ray(R, t, (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy, 1.0, idepth[i])
+        u = v = -1.0
+        if z > 0.0:
+            u, v = fx * x / z + cx, fy * y / z + cy
+        inside[i] = z > 0.0 and u >= 0.0 and v >= 0.0 and u <= width - 1 and v <= height - 1
+        pixel[i, 0], pixel[i, 1] = int(np.rint((u + 0.5) / 2.0 - 0.5)), int(np.rint((v + 0.5) / 2.0 - 0.5))
+    return pixel, inside
+
+
 # optimizeImmaturePoint stops once a step moves the inverse depth by less than this share of it.
 CONVERGED_STEP_SHARE = 1e-4
 # Points per block of the activation's parallel loop: a keyframe activates several hundred points of all its hosts in

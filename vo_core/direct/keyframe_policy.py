@@ -12,6 +12,7 @@ import numba
 import numpy as np
 
 from vo_core.direct.config import KeyframeConfig
+from vo_core.direct.photometric_kernels import warp_ray
 
 
 def keyframe_score(
@@ -90,11 +91,8 @@ def fraction_in_view(uv, idepth, T_viewer_host, intrinsics, width, height):
     R, t = T_viewer_host[:3, :3], T_viewer_host[:3, 3]
     visible = 0
     for i in range(len(uv)):
-        depth = 1.0 / max(idepth[i], 1e-6)
-        x, y = (uv[i, 0] - cx) / fx * depth, (uv[i, 1] - cy) / fy * depth
-        z = R[2, 0] * x + R[2, 1] * y + R[2, 2] * depth + t[2]
+        x, y, z = warp_ray(R, t, (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy, 1.0, max(idepth[i], 1e-6))
         if z > 0.0:
-            u = fx * (R[0, 0] * x + R[0, 1] * y + R[0, 2] * depth + t[0]) / z + cx
-            v = fy * (R[1, 0] * x + R[1, 1] * y + R[1, 2] * depth + t[1]) / z + cy
+            u, v = fx * x / z + cx, fy * y / z + cy
             visible += u >= 0.0 and v >= 0.0 and u <= width - 1 and v <= height - 1
     return visible / len(uv)

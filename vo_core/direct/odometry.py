@@ -40,14 +40,15 @@ from vo_core.direct.affine import relative_affine
 from vo_core.direct.coarse_tracker import PATTERN, CoarseTracker, TrackingResult
 from vo_core.direct.config import DirectConfig
 from vo_core.direct.immature_point import (
-    ActivationCandidates, ActivationTargets, ImmaturePoints, host_pattern, optimize_for_activation,
+    ActivationCandidates, ActivationTargets, ImmaturePoints, half_resolution_pixels, host_pattern,
+    optimize_for_activation,
 )
 from vo_core.direct.initialization import InitializationResult, InitializerFactory
 from vo_core.direct.keyframe_policy import fraction_in_view, keyframes_to_marginalize, needs_keyframe
 from vo_core.direct.marginalization import MarginalizationPrior
 from vo_core.direct.motion_model import motion_hypotheses
 from vo_core.direct.pixel_selector import PixelSelector
-from vo_core.direct.pyramid import ImagePyramid, to_level
+from vo_core.direct.pyramid import ImagePyramid
 from vo_core.direct.scale_watch import ScaleWatch
 from vo_core.direct.start_check import StartCheck
 from vo_core.direct.window import WindowOptimizer, WindowReport
@@ -782,18 +783,15 @@ class DirectOdometry:
         half = (camera.width + 1) // 2, (camera.height + 1) // 2
         T_new_world = se3_inverse(new_keyframe.T_world_cam)
 
-        def half_res_pixels(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            points = transform_points(T_new_world, points_world)
-            front = points[:, 2] > 0
-            uv = np.full((len(points), 2), -1.0)
-            uv[front] = camera.project(points[front])
-            inside = front & camera.in_image(uv)
-            return np.round(to_level(uv, 1)).astype(int), inside
+        def half_res_pixels(host: Keyframe, uv: np.ndarray, idepth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return half_resolution_pixels(np.asarray(uv, float), np.asarray(idepth, float),
+                                          T_new_world @ host.T_world_cam, camera.intrinsics, camera.width,
+                                          camera.height)
 
         free = np.ones((half[1], half[0]), np.uint8)
         for keyframe in self.keyframes:
             if len(keyframe.active_idepth):
-                pixel, inside = half_res_pixels(keyframe.active_points_world())
+                pixel, inside = half_res_pixels(keyframe, keyframe.active_uv, keyframe.active_idepth)
                 free[pixel[inside, 1], pixel[inside, 0]] = 0
         distance = cv2.distanceTransform(free, cv2.DIST_L1, 3) if not free.all() else np.full(free.shape, np.inf)
         window = self.keyframes + [new_keyframe]  # the keyframes the window optimization takes next, in its order
@@ -808,8 +806,7 @@ class DirectOdometry:
             if immature is None or len(immature) == 0:
                 continue
             activatable = np.flatnonzero(immature.activatable(self.config.immature))
-            points_cam = camera.unproject(immature.uv[activatable]) / immature.idepth[activatable, None]
-            pixel, inside = half_res_pixels(transform_points(keyframe.T_world_cam, points_cam))
+            pixel, inside = half_res_pixels(keyframe, immature.uv[activatable], immature.idepth[activatable])
             pixel = np.clip(pixel, 0, [half[0] - 1, half[1] - 1])
             far_enough = distance[pixel[:, 1], pixel[:, 0]] >= self.min_activation_distance * immature.kind[activatable]
             # New points keep the spacing among themselves: one per cell of that size (first come).
