@@ -19,7 +19,8 @@ import numpy as np
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.photometric_kernels import (
-    PARALLEL_LAUNCH, bilinear3, bilinear_gradient, inside, pattern_shifts, prefetch_patch, search_line, warp_ray,
+    PARALLEL_LAUNCH, bilinear3, bilinear_gradient, host_pixel_in_view, inside, pattern_shifts, prefetch_patch,
+    search_line, warp_ray,
 )
 from vo_core.direct.pyramid import ImagePyramid, PyramidLevel, squared_gradient
 from vo_core.geometry.camera import PinholeCamera
@@ -157,10 +158,11 @@ def _trace_points(todo, pr, Kt, rotated, intensity, packed, factor, offset, colo
     for j in range(len(todo)):
         i = todo[j]
         if j + 1 < len(todo):  # where the next point's search starts, asked for while this one's runs (5-10 %)
-            z_next = pr[j + 1, 2] + idepth_min[todo[j + 1]] * Kt[2]
+            id_next = idepth_min[todo[j + 1]]
+            z_next = pr[j + 1, 2] + id_next * Kt[2]
             if z_next > 0.0:
-                prefetch_patch(intensity, (pr[j + 1, 0] + idepth_min[todo[j + 1]] * Kt[0]) / z_next,
-                               (pr[j + 1, 1] + idepth_min[todo[j + 1]] * Kt[1]) / z_next, radius)
+                prefetch_patch(intensity, (pr[j + 1, 0] + id_next * Kt[0]) / z_next,
+                               (pr[j + 1, 1] + id_next * Kt[1]) / z_next, radius)
         id_min = idepth_min[i]
         z_min = pr[j, 2] + id_min * Kt[2]
         u_min = (pr[j, 0] + id_min * Kt[0]) / z_min
@@ -375,15 +377,15 @@ def optimize_for_activation(
         camera = targets[0].camera
         T_target_host = np.stack([t.T_target_host for t in targets])  # (hosts, targets, 4, 4)
         affine = np.stack([t.affine for t in targets])
-        points = [c.points for c in candidates]
+
+        def gathered(field: str) -> np.ndarray:
+            return np.concatenate([getattr(c.points, field)[c.index] for c in candidates])
+
         with PARALLEL_LAUNCH:
             usable = _optimize_inverse_depths(
-                camera.unproject(np.concatenate([p.uv[c.index] for p, c in zip(points, candidates)])),
-                np.repeat(np.arange(len(candidates)), counts), pattern_rays(camera.intrinsics), idepth,
-                np.concatenate([p.color[c.index] for p, c in zip(points, candidates)]),
-                np.concatenate([p.weight[c.index] for p, c in zip(points, candidates)]) ** 2,
-                np.concatenate([p.energy_threshold[c.index] for p, c in zip(points, candidates)]),
-                targets[0].images, np.stack([t.image_index for t in targets]),
+                camera.unproject(gathered("uv")), np.repeat(np.arange(len(candidates)), counts),
+                pattern_rays(camera.intrinsics), idepth, gathered("color"), gathered("weight") ** 2,
+                gathered("energy_threshold"), targets[0].images, np.stack([t.image_index for t in targets]),
                 np.ascontiguousarray(T_target_host[..., :3, :3]), np.ascontiguousarray(T_target_host[..., :3, 3]),
                 np.ascontiguousarray(affine[..., 0]), np.ascontiguousarray(affine[..., 1]), camera.intrinsics,
                 float(config.huber_threshold), float(config.first_outlier_slack), int(config.activation_gn_iterations),
@@ -399,16 +401,11 @@ def half_resolution_pixels(uv, idepth, T_viewer_host, intrinsics, width, height)
     (level 1, rounded half to even as np.rint), and whether they land in front of it and inside its ``width`` x
     ``height`` image. activatePointsMT's distance map and candidates, in one compiled pass (numpy's dozen passes
     over each host's points cost about 2 ms a keyframe)."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     R, t = T_viewer_host[:3, :3], T_viewer_host[:3, 3]
     pixel = np.empty((len(uv), 2), np.int64)
     inside = np.empty(len(uv), np.bool_)
     for i in range(len(uv)):
-        x, y, z = warp_ray(R, t, (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy, 1.0, idepth[i])
-        u = v = -1.0
-        if z > 0.0:
-            u, v = fx * x / z + cx, fy * y / z + cy
-        inside[i] = z > 0.0 and u >= 0.0 and v >= 0.0 and u <= width - 1 and v <= height - 1
+        u, v, inside[i] = host_pixel_in_view(R, t, intrinsics, uv[i, 0], uv[i, 1], idepth[i], width, height)
         pixel[i, 0], pixel[i, 1] = int(np.rint((u + 0.5) / 2.0 - 0.5)), int(np.rint((v + 0.5) / 2.0 - 0.5))
     return pixel, inside
 

@@ -12,7 +12,7 @@ import numba
 import numpy as np
 
 from vo_core.direct.config import KeyframeConfig
-from vo_core.direct.photometric_kernels import warp_ray
+from vo_core.direct.photometric_kernels import host_pixel_in_view
 
 
 def keyframe_score(
@@ -87,12 +87,8 @@ def fraction_in_view(uv, idepth, T_viewer_host, intrinsics, width, height):
     """Share of a host keyframe's points (pixels ``uv`` at inverse depths ``idepth``, at least 1e-6) that land in
     front of a viewer and inside its image (the pixel centres from 0 to width - 1). One compiled pass: in numpy it
     cost about 1 ms a keyframe over the window, on tracking's wait for the reference."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     R, t = T_viewer_host[:3, :3], T_viewer_host[:3, 3]
     visible = 0
     for i in range(len(uv)):
-        x, y, z = warp_ray(R, t, (uv[i, 0] - cx) / fx, (uv[i, 1] - cy) / fy, 1.0, max(idepth[i], 1e-6))
-        if z > 0.0:
-            u, v = fx * x / z + cx, fy * y / z + cy
-            visible += u >= 0.0 and v >= 0.0 and u <= width - 1 and v <= height - 1
+        visible += host_pixel_in_view(R, t, intrinsics, uv[i, 0], uv[i, 1], max(idepth[i], 1e-6), width, height)[2]
     return visible / len(uv)

@@ -107,6 +107,19 @@ def warp_ray(R, t, ray_x, ray_y, ray_z, idepth):
 
 
 @numba.njit(cache=True, nogil=True)
+def host_pixel_in_view(R, t, intrinsics, u, v, idepth, width, height):
+    """Where a host pixel (u, v) at inverse depth ``idepth`` lands in a viewer at (R, t) = T_viewer_host: its pixel
+    there ((-1, -1) behind the viewer) and whether it lies in front and inside the viewer's ``width`` x ``height``
+    image (pixel centres from 0 to width - 1)."""
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    x, y, z = warp_ray(R, t, (u - cx) / fx, (v - cy) / fy, 1.0, idepth)
+    if not z > 0.0:
+        return -1.0, -1.0, False
+    u_viewer, v_viewer = fx * x / z + cx, fy * y / z + cy
+    return u_viewer, v_viewer, u_viewer >= 0.0 and v_viewer >= 0.0 and u_viewer <= width - 1 and v_viewer <= height - 1
+
+
+@numba.njit(cache=True, nogil=True)
 def pattern_shifts(R, pattern_rays, shifts):
     """``shifts[k]`` = R ``pattern_rays[k]``: how pattern pixel k's warp differs from its point's (``warp_ray`` is
     affine in the ray; coarse_tracker.pattern_rays)."""
@@ -549,8 +562,6 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
                 point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
                 residuals[k] = residual
                 weights[k] = huber_w * gradient_weight * gradient_weight
-            if out:
-                continue
             if point_energy > outlier_energy:
                 status[tg, i] = 2
                 energy += outlier_energy

@@ -145,9 +145,9 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
                         kind, chosen):
     """select() for one cell size: in each cell where no finer level chose a pixel, the candidate with the
     largest |gradient . d| (the first one in row-major order on ties) is chosen as ``kind``; d is the cell's
-    ``directions[direction[cell]]``. A candidate is a
-    level-0 pixel at least ``border`` inside the image (one more on the right) whose level's |grad|^2 (``grad_sq``,
-    the level's pixel under it: ``scale`` = 2^-level) passes its block's threshold times ``weight`` and ``factor``.
+    ``directions[direction[cell]]``. A candidate is a level-0 pixel at least ``border`` inside the image (one more
+    on the right) whose level's |grad|^2 (``grad_sq``, the level's pixel under it: ``scale`` = 2^-level) passes its
+    block's threshold times ``weight`` and ``factor``.
 
     One compiled pass over the cells: the numpy version built a dozen full-resolution temporaries per size. Each
     row's and column's pixel on the level and threshold block are looked up once per call."""
@@ -165,7 +165,7 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
             if _any_chosen(chosen, y0, y1, x0, x1):
                 continue
             best, best_y, best_x = 0.0, -1, -1
-            cos_a, sin_a = directions[direction[cell_row, cell_col], 0], directions[direction[cell_row, cell_col], 1]
+            cos_a, sin_a = directions[direction[cell_row, cell_col]]
             for y in range(max(y0, border), min(y1, h - border)):
                 level_y, block_y = level_row[y], block_row[y]
                 for x in range(max(x0, x_lo), min(x1, x_hi)):

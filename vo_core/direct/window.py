@@ -155,9 +155,9 @@ class WindowOptimizer:
         affines = [np.asarray(k.affine, float) for k in keyframes]
         system = self._linearize(keyframes, points, poses, affines, idepth, MarginalizationPrior(), only_host=leaving)
         hosted = slice(points.host_start[leaving], points.host_start[leaving + 1])  # the other points' rows are zero
-        H_kp = system.H_kp[:, hosted] / (system.H_pp[hosted] + self.config.idepth_regularization)
-        H = system.H_kk - H_kp @ system.H_kp[:, hosted].T
-        b = system.b_k - H_kp @ system.b_p[hosted]
+        H_kp_scaled = system.H_kp[:, hosted] / (system.H_pp[hosted] + self.config.idepth_regularization)
+        H = system.H_kk - H_kp_scaled @ system.H_kp[:, hosted].T
+        b = system.b_k - H_kp_scaled @ system.b_p[hosted]
         frame_ids = [k.frame_index for k in keyframes]
         new_prior = prior.marginalize(frame_ids, poses, affines, H, b, leaving, self.config.marginalization_damping)
         return new_prior, int(np.count_nonzero(system.inliers))
