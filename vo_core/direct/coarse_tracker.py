@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.direct.affine import exposure_ratio
 from vo_core.direct.config import PATTERN_8, TrackerConfig
 from vo_core.direct.photometric_kernels import align_level, bilinear1, level_residuals
@@ -79,7 +79,7 @@ def _merged_per_pixel(uv: np.ndarray, idepth: np.ndarray, width: int) -> tuple[n
     return _merge_by_pixel(np.ascontiguousarray(uv, dtype=float), np.ascontiguousarray(idepth, dtype=float), width)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _merge_by_pixel(uv, idepth, width):
     """Bins over the range of the pixels' raster keys, counted and summed in the points' order (np.bincount's
     sums; a sort took 1 ms a level, numpy's bincount and the passes around it 0.5 ms, on tracking's wait)."""
@@ -103,7 +103,7 @@ def _merge_by_pixel(uv, idepth, width):
     return merged_uv, merged_idepth
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _pattern_pixels(uv, idepth, pattern, width, height, margin):
     """The points whose whole pattern lies at least ``margin`` inside a ``width`` x ``height`` image (mask), and
     their pattern pixels (M, 2) with each its point's inverse depth. One compiled pass instead of numpy's
@@ -125,7 +125,7 @@ def _pattern_pixels(uv, idepth, pattern, width, height, margin):
     return keep, pixels, pixel_idepth
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _rays_and_colors(pixels, intensity, intrinsics):
     """float32 K^-1 (u, v, 1) of each pixel and its bilinear intensity (the pixels lie inside the image)."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]

@@ -16,6 +16,7 @@ from enum import IntEnum
 import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.direct.config import ImmatureConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
 from vo_core.direct.photometric_kernels import (
@@ -139,9 +140,9 @@ class ImmaturePoints:
 
 
 # The trace of one host's points, one compiled loop (each point's traceOn in turn): in numpy, the thirty array
-# operations around the searches cost a third of the tracing, seven hosts a frame. Division by zero gives inf or NaN,
-# as numpy's does (error_model), which the tests below turn into a status.
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+# operations around the searches cost a third of the tracing, seven hosts a frame. Division by zero gives inf or NaN
+# (vo_core.compiled), which the tests below turn into a status.
+@kernel
 def _trace_points(todo, pr, Kt, rotated, intensity, packed, factor, offset, color, weight, grad_h, energy_threshold,
                   idepth_min, idepth_max, quality, status, pixel_interval, last_uv, width, height, border, max_search,
                   min_scale_change, max_scale_change, slack_interval, stepsize, min_improvement, max_steps, huber,
@@ -228,7 +229,7 @@ def _trace_points(todo, pr, Kt, rotated, intensity, packed, factor, offset, colo
         last_uv[i, 0], last_uv[i, 1] = best_u, best_v
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _lose(i, new_status, status, last_uv, pixel_interval):
     """The point's trace gave no position."""
     status[i] = new_status
@@ -236,14 +237,14 @@ def _lose(i, new_status, status, last_uv, pixel_interval):
     pixel_interval[i] = 0.0
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _keep_midpoint(i, new_status, u_min, v_min, u_max, v_max, dist, status, last_uv, pixel_interval):
     status[i] = new_status
     last_uv[i, 0], last_uv[i, 1] = (u_min + u_max) * 0.5, (v_min + v_max) * 0.5
     pixel_interval[i] = dist
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _refine_on_line(packed, start_u, start_v, dx, dy, rotated, color, weight, factor, offset, huber, missing_energy,
                     iterations, threshold):
     """traceOn's Gauss-Newton refinement of one point's position along its epipolar direction (dx, dy).
@@ -395,7 +396,7 @@ def optimize_for_activation(
     return list(zip(np.split(idepth, split), np.split(usable, split)))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def half_resolution_pixels(uv, idepth, T_viewer_host, intrinsics, width, height):
     """Where host pixels ``uv`` at inverse depths ``idepth`` land in a viewer: the viewer's pixel at half resolution
     (level 1, rounded half to even as np.rint), and whether they land in front of it and inside its ``width`` x
@@ -418,7 +419,7 @@ CONVERGED_STEP_SHARE = 1e-4
 ACTIVATION_BLOCK = 32
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@kernel(parallel=True)
 def _optimize_inverse_depths(rays, host, pattern_rays, idepth, color, weight_sq, threshold, images, image_index, R, t,
                              factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
                              min_observations):
@@ -435,7 +436,7 @@ def _optimize_inverse_depths(rays, host, pattern_rays, idepth, color, weight_sq,
     return usable
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _activation_buffers(n, R, pattern_rays):
     """The usable mask and each (host, target) pair's pattern_shifts (outside the parallel function: numba makes
     its array expressions parallel regions of their own)."""
@@ -446,7 +447,7 @@ def _activation_buffers(n, R, pattern_rays):
     return np.zeros(n, np.bool_), pattern_shift
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _optimize_points(first, end, rays, host, pattern_shift, idepth, color, weight_sq, threshold, images, image_index,
                      R, t, factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
                      min_observations, usable):
@@ -486,7 +487,7 @@ def _optimize_points(first, end, rays, host, pattern_shift, idepth, color, weigh
         usable[i] = usable[i] and np.isfinite(idepth[i]) and idepth[i] > 0 and inlier.sum() >= min_observations
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _depth_system(i, idepth, outlier_slack, rays, pattern_shift, color, weight_sq, threshold, images, image_index, R,
                   t, factor, offset, intrinsics, huber, in_bounds, inlier, residuals, d_idepth):
     """linearizeResidual of point i at ``idepth``, summed over the targets in order: (energy, H_dd, b_d); sets

@@ -8,9 +8,9 @@ keyframe. The flow weights are DSO's, relative to the image size (w + h).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.direct.config import KeyframeConfig
 from vo_core.direct.photometric_kernels import host_pixel_in_view
 
@@ -82,7 +82,7 @@ def keyframes_to_marginalize(
     return sorted(flagged)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def fraction_in_view(uv, idepth, T_viewer_host, intrinsics, width, height):
     """Share of a host keyframe's points (pixels ``uv`` at inverse depths ``idepth``, at least 1e-6) that land in
     front of a viewer and inside its image (the pixel centres from 0 to width - 1). One compiled pass: in numpy it

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.geometry.lie import se3_inverse_compiled, se3_log_compiled
 
 PARAMS_PER_KEYFRAME = 8
@@ -93,7 +93,7 @@ class MarginalizationPrior:
         return MarginalizationPrior(remaining, 0.5 * (H_new + H_new.T), b_new, {f: x0[f] for f in remaining})
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _pose_increments(T, T0):
     """(K, 6) log(T_k T0_k^-1): each keyframe's left increment in the world frame from its linearization point."""
     increments = np.empty((len(T), 6))

@@ -27,6 +27,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from vo_core.compiled import kernel
 from vo_core.geometry.lie import se3_exp_compiled
 
 # window_linearization runs on numba's threads; with OpenMP they otherwise spin for a while after each call, which
@@ -44,7 +45,7 @@ TERM_U, TERM_V, TERM_IDEPTH, TERM_GX, TERM_GY, TERM_RESIDUAL, TERM_WEIGHT, TERM_
 TERM_COLUMNS = 8
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed, factor, offset, huber, cutoff):
     """calcRes for all pattern pixels at once.
 
@@ -97,7 +98,7 @@ def warp_residuals(rays, idepth, color, R, t, intrinsics, border, packed, factor
     return terms, count, num_terms, saturated, energy + max_energy * saturated
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def warp_ray(R, t, ray_x, ray_y, ray_z, idepth):
     """R ray + idepth t: a host pixel's ray warped into the target, scaled by the point's inverse depth (so a
     point at infinity, idepth 0, stays finite); dividing by the third coordinate gives the normalized pixel."""
@@ -106,7 +107,7 @@ def warp_ray(R, t, ray_x, ray_y, ray_z, idepth):
             R[2, 0] * ray_x + R[2, 1] * ray_y + R[2, 2] * ray_z + idepth * t[2])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def host_pixel_in_view(R, t, intrinsics, u, v, idepth, width, height):
     """Where a host pixel (u, v) at inverse depth ``idepth`` lands in a viewer at (R, t) = T_viewer_host: its pixel
     there ((-1, -1) behind the viewer) and whether it lies in front and inside the viewer's ``width`` x ``height``
@@ -119,7 +120,7 @@ def host_pixel_in_view(R, t, intrinsics, u, v, idepth, width, height):
     return u_viewer, v_viewer, u_viewer >= 0.0 and v_viewer >= 0.0 and u_viewer <= width - 1 and v_viewer <= height - 1
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def pattern_shifts(R, pattern_rays, shifts):
     """``shifts[k]`` = R ``pattern_rays[k]``: how pattern pixel k's warp differs from its point's (``warp_ray`` is
     affine in the ray; coarse_tracker.pattern_rays)."""
@@ -148,7 +149,7 @@ def _prefetch(typingctx, image, row, column):
     return types.void(image, row, column), codegen
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def pattern_radius(pattern_rays, fx, fy):
     """The pattern's reach from its point in whole pixels, from its rays (coarse_tracker.pattern_rays)."""
     radius = 0
@@ -157,7 +158,7 @@ def pattern_radius(pattern_rays, fx, fy):
     return radius
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def prefetch_patch(intensity, u, v, radius):
     """Asks the cache for what ``bilinear_gradient`` reads for a pattern of ``radius`` pixels around (u, v) (a superset
     of bilinear1's reads). A kernel that reads scattered points calls it for a point ahead of the one it reads: the
@@ -174,13 +175,13 @@ def prefetch_patch(intensity, u, v, radius):
         _prefetch(intensity, row, right)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def inside(u, v, width, height, border):
     """Whether a pixel lies more than ``border`` pixels inside the image (bilinear lookups stay in it)."""
     return u > border and v > border and u < width - 1 - border and v < height - 1 - border
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bilinear_weights(u, v):
     """The top-left corner (iu, iv) of a float pixel and the weights of its four corners (00, 01, 10, 11)."""
     iu = int(np.floor(u))
@@ -190,7 +191,7 @@ def bilinear_weights(u, v):
     return iu, iv, (1.0 - du) * (1.0 - dv), du * (1.0 - dv), (1.0 - du) * dv, du * dv
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bilinear3(packed, u, v):
     """(intensity, d/du, d/dv) at a float pixel inside the image (the caller checks the bounds)."""
     iu, iv, w00, w01, w10, w11 = bilinear_weights(u, v)
@@ -201,7 +202,7 @@ def bilinear3(packed, u, v):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bilinear_gradient(intensity, u, v):
     """bilinear3's (intensity, d/du, d/dv) from the intensity image alone: the central differences at the four
     corners, then the same interpolation, so the same numbers as bilinear3 on the packed image at least one pixel
@@ -223,7 +224,7 @@ def bilinear_gradient(intensity, u, v):
             w00 * gy00 + w01 * gy01 + w10 * gy10 + w11 * gy11)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def normal_equations(terms, count, fx, fy, factor, reference_b):
     """calcGSSSE: H = sum w J^T J and b = sum w J^T r over the terms, divided by their number.
 
@@ -260,7 +261,7 @@ def normal_equations(terms, count, fx, fy, factor, reference_b):
     return H / n, b / n
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def level_residuals(rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
                     cutoff):
     """``warp_residuals`` at pose T (4x4, reference -> frame) and the frame's affine ``ab``, the brightness transfer
@@ -277,19 +278,19 @@ def level_residuals(rays, idepth, color, T, ab, intrinsics, border, packed, expo
     return terms, count, num_terms, saturated, energy, factor
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _mean(energy, num_terms):
     return energy / num_terms if num_terms > 0 else np.inf
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _scaled_normal_equations(terms, count, intrinsics, factor, reference_b, step_scale):
     """normal_equations in the scaled parameters the steps are taken in (DSO's SCALE_*)."""
     H, b = normal_equations(terms, count, intrinsics[0], intrinsics[1], factor, reference_b)
     return H * np.outer(step_scale, step_scale), b * step_scale
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber,
                 cutoff, max_saturated_ratio, max_cutoff_repeat, step_scale, initial_lambda, extrapolation_limit,
                 lambda_decrease, lambda_increase, max_iterations, min_increment_norm):
@@ -343,7 +344,7 @@ def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure
     return T, ab, mean_energy, num_terms, repeat
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def bilinear1(image, u, v):
     """Bilinear intensity at a float pixel inside the image (the caller checks the bounds)."""
     iu = int(np.floor(u))
@@ -354,7 +355,7 @@ def bilinear1(image, u, v):
             + (1.0 - du) * dv * image[iv + 1, iu] + du * dv * image[iv + 1, iu + 1])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, factor, offset, huber,
                 missing_energy, test_radius, energies):
     """traceOn's discrete search: the pattern's Huber energy at 1-px steps along one point's epipolar segment.
@@ -390,7 +391,7 @@ def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, 
     return start_u + best_step * dx, start_v + best_step * dy, second / max(energies[best_step], 1e-12)
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@kernel(parallel=True)
 def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, host_start, images, image_slots, R, t,
                          R0, t0, adjoint0, factor, offset, host_b, active, dropped, intrinsics, border, huber,
                          outlier_energy, weight_component):
@@ -443,13 +444,13 @@ def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, 
 # more than the work (the blocks' sums made a call 1.6x slower on 2 threads than on 1).
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _linearization_buffers(n_points, n_kf, n_blocks):
     return (np.ones((n_kf, n_points), np.int8), np.zeros((n_points, 8 * n_kf)), np.zeros(n_points),
             np.zeros(n_points), np.zeros((n_blocks, n_kf, 9, 9)), np.zeros((n_blocks, n_kf, 9)), np.zeros(n_blocks))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active):
     """The blocks' energies and local systems summed in block order, each pair's then mapped into the keyframes'."""
     n_kf = M_blocks.shape[1]
@@ -482,7 +483,7 @@ PREFETCH_AHEAD = 2
 POINTS_PER_BLOCK = 128
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _point_blocks(host_start, active):
     """(B, 3) rows (host, first point, end) covering the active hosts' points in blocks of POINTS_PER_BLOCK."""
     count = 0
@@ -499,7 +500,7 @@ def _point_blocks(host_start, active):
     return blocks
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, host_weight, images, image_slots, R, t,
                       R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber, outlier_energy,
                       weight_component, status, H_pk, H_pp, b_p, M_block, m_block):
@@ -644,7 +645,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
     return energy
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _add_pair_system(M, m, A, adjoint, h, tg, H_kk, b_k):
     """Add one pair's local system (M filled in its upper triangle, mirrored here) to the keyframes' system:
     A^T M A and A^T m with A mapping [delta_h, a_h, b_h, delta_t, a_t, b_t] to the local [xi, a_t, b_t, b_h]."""

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.direct.config import SelectorConfig
 from vo_core.direct.pyramid import ImagePyramid
 
@@ -52,7 +52,7 @@ def block_thresholds(grad_sq: np.ndarray, config: SelectorConfig) -> np.ndarray:
     return smoothed**2
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _block_quantiles(grad_sq, block, h_blocks, w_blocks, max_gradient, quantile):
     """makeHists: per block the ``quantile`` of the integer gradient magnitudes min(int(|grad|), max_gradient) by
     histogram, the image border skipped, ``max_gradient`` for a block without pixels. computeHistQuantil: the first
@@ -140,7 +140,7 @@ class PixelSelector:
         return Selection(np.stack([cols, rows], axis=1), chosen[rows, cols].astype(np.int64))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, border, packed, direction, directions, cell,
                         kind, chosen):
     """select() for one cell size: in each cell where no finer level chose a pixel, the candidate with the
@@ -177,7 +177,7 @@ def _take_best_in_cells(grad_sq, scale, thresholds, block, weight, factor, borde
                 chosen[best_y, best_x] = kind
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _level_and_block(length, scale, level_length, block, num_blocks):
     """For each level-0 index 0..``length``-1 along one axis: its pixel on the level (``scale`` = 2^-level, the
     level's pixel under it) and its threshold block."""
@@ -189,7 +189,7 @@ def _level_and_block(length, scale, level_length, block, num_blocks):
     return level, blocks
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _any_chosen(chosen, y0, y1, x0, x1):
     for y in range(y0, y1):
         for x in range(x0, x1):

@@ -10,9 +10,9 @@ from __future__ import annotations
 import dataclasses
 
 import cv2
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.direct.config import PyramidConfig
 from vo_core.geometry.camera import PinholeCamera
 
@@ -67,7 +67,7 @@ def squared_gradient(samples: np.ndarray) -> np.ndarray:
     return _squared_gradient(samples.reshape(-1, samples.shape[-1])).reshape(samples.shape[:-1])
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _squared_gradient(samples):
     result = np.empty(len(samples), samples.dtype)
     for i in range(len(samples)):
@@ -96,7 +96,7 @@ def remap_points(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out.reshape(rows * columns, *channels)[:n]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _packed(image: np.ndarray) -> np.ndarray:
     """(h, w, 3) float32 intensity and central differences 0.5 (I[x+1] - I[x-1]) as DSO, zero gradients on the
     border rows and columns. One compiled pass: numpy's slices and np.dstack took most of the pyramid's time."""
@@ -112,7 +112,7 @@ def _packed(image: np.ndarray) -> np.ndarray:
     return packed
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _half(image: np.ndarray) -> np.ndarray:
     """2x2 block average of the even part of the image (DSO makeImages), summed in float32 in a fixed order."""
     h, w = image.shape[0] // 2, image.shape[1] // 2

@@ -37,10 +37,10 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from vo_core.compiled import kernel
 from vo_core.direct.affine import relative_affines
 from vo_core.direct.config import WindowConfig
 from vo_core.direct.coarse_tracker import PATTERN, pattern_rays
@@ -326,7 +326,7 @@ def _scale_direction(poses: list) -> np.ndarray:
     return direction
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _relative_poses(T_world_cam):
     """T_target_host = T_world_target^-1 T_world_host of every pair, indexed [host, target], as its rotation
     (K, K, 3, 3) and translation (K, K, 3): R_target^T R_host and R_target^T (t_host - t_target)."""
@@ -345,7 +345,7 @@ def _relative_poses(T_world_cam):
     return R, t
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _inverse_adjoints(T_world_cam):
     """(K, 6, 6) Ad(T_cam_world) of each keyframe."""
     adjoints = np.empty((len(T_world_cam), 6, 6))

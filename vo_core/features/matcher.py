@@ -15,9 +15,9 @@ Hamming distances: descriptors are read as four 64-bit words, XORed, and their s
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.features.config import OrbConfig
 from vo_core.features.orb import DESCRIPTOR_BYTES, Features, level_sigma2s
 
@@ -84,7 +84,7 @@ def least_median_descriptors(descriptors: np.ndarray, starts: np.ndarray) -> np.
     return _least_median_rows(_words(descriptors), np.asarray(starts, np.int64))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _least_median_rows(words, starts):
     best_rows = np.empty(len(starts) - 1, np.int64)
     for g in range(len(starts) - 1):
@@ -199,7 +199,7 @@ def match_exhaustive(a: Features, b: Features, *, max_distance: float, ratio: fl
     return _nearest_of_all(_words(a.descriptors), _words(b.descriptors), float(max_distance), float(ratio))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest_of_all(words_a, words_b, max_distance, ratio):
     found_a, found_b = np.empty(len(words_a), np.int64), np.empty(len(words_a), np.int64)
     found = 0
@@ -256,7 +256,7 @@ def search_by_projection(
 GRID_CELL_PX = 16.0
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest_within(feature_uv, feature_level, feature_words, usable, uv, radius, level, words, valid, level_window,
                     max_distance, ratio):
     """search_by_projection's candidates and choice in one pass: for each valid point, the usable features within
@@ -285,7 +285,7 @@ def _nearest_within(feature_uv, feature_level, feature_words, usable, uv, radius
     return chosen[:found, 0], chosen[:found, 1], chosen[:found, 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _feature_grid(feature_uv):
     """The features bucketed in cells of GRID_CELL_PX from their smallest (u, v): (start, members, origin_u,
     origin_v, columns, rows); cell c (row-major) holds ``members[start[c]:start[c + 1]]``, in index order."""
@@ -308,7 +308,7 @@ def _feature_grid(feature_uv):
     return start, members, origin_u, origin_v, columns, rows
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _cell_span(low, high, count):
     """The first and last of ``count`` cells that [low, high] (pixels from the grid's origin) overlaps; first > last
     where none."""
@@ -321,7 +321,7 @@ def _cell_span(low, high, count):
 NO_NEAREST = (DESCRIPTOR_BITS + 1, -1, DESCRIPTOR_BITS + 1)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest_update(nearest, distance, target):
     """One more candidate for the running (distance, target, second distance): the nearest descriptor, ties to the
     lower target index, and the second smallest distance among all candidates (the ratio test's)."""
@@ -331,7 +331,7 @@ def _nearest_update(nearest, distance, target):
     return best, best_target, min(second, distance)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _accepted(nearest, max_distance, ratio):
     """Whether a running choice is a match: the nearest within ``max_distance`` and below ``ratio`` times the second
     nearest (Lowe's test; a lone candidate passes, as ORB-SLAM2's second best starts at the largest distance)."""
@@ -339,7 +339,7 @@ def _accepted(nearest, max_distance, ratio):
     return target >= 0 and best <= max_distance and (second > DESCRIPTOR_BITS or best < ratio * second)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _hamming_words(a, b):
     """Hamming distance of two descriptors as (4,) uint64 words (SWAR popcount)."""
     total = 0
@@ -446,7 +446,7 @@ def _nearest_sharing_node(features_a, index_a, nodes_a, features_b, index_b, nod
     return i, j
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _nearest_in_node(index_a, lines, node_a, words_a, index_b, node_b, uv_b, threshold_b, words_b, max_distance,
                      ratio):
     """_nearest_sharing_node's candidates and choice in one pass: for each feature ``index_a[k]`` (epipolar line

@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import cv2
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.features.config import OrbConfig
 
 DESCRIPTOR_BYTES = 32  # rBRIEF: 256 binary tests (ORB-SLAM2 ORBextractor, OpenCV ORB with WTA_K = 2)
@@ -409,7 +409,7 @@ def _strongest_per_run(order: np.ndarray, response: np.ndarray, run_starts: np.n
 # ------------------------------------------------------------------------------------------------ helpers
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _disc_moments(image: np.ndarray, xy: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(m10, m01) of each corner's disc, whose row at offset d = -r..r spans columns -half[d]..half[d]: the sums
     of u I(x + u, y + d) and d I(x + u, y + d), exact in integers (one pass over the disc's pixels, as IC_Angle)."""

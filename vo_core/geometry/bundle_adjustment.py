@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import numba
 from scipy.linalg import block_diag
 
+from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_exp, se3_inverse
 from vo_core.geometry.reprojection import (
@@ -191,7 +191,7 @@ def _observations_by_point(point_index: np.ndarray, num_points: int) -> tuple[np
     return by_point, point_start
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _schur_coupling(Y_obs, W_obs, pose, by_point, point_start, num_poses):
     """sum_j W_aj V_j^-1 W_bj^T as a (6F, 6F) matrix: for each point, every pair of its observations (a, j),
     (b, j) adds Y_aj W_bj^T at block (a, b). Compiled: a 6x6 product per pair, ~10^5 pairs per adjustment step

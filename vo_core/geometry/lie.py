@@ -10,8 +10,9 @@ Conventions, used everywhere in the project:
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+
+from vo_core.compiled import kernel
 
 _SMALL_ANGLE = 1e-8  # below this the Taylor expansions are exact to double precision
 
@@ -34,7 +35,7 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return _so3_exp(np.asarray(w, dtype=float).reshape(3).copy())
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _hat(w):
     W = np.zeros((3, 3))
     W[0, 1], W[0, 2], W[1, 2] = -w[2], w[1], -w[0]
@@ -42,7 +43,7 @@ def _hat(w):
     return W
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _so3_exp(w):
     """so3_exp compiled, for the compiled kernels (direct alignment's steps) and for Python alike."""
     theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -58,7 +59,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
     return _so3_log(np.ascontiguousarray(R, dtype=float))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _so3_log(R):
     # Rodrigues: (R - R^T)/2 = sin(theta) [a], trace(R) = 1 + 2 cos(theta). atan2 keeps full precision
     # at both ends of [0, pi], where arccos of the trace loses half the digits.
@@ -88,7 +89,7 @@ def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
     return _so3_left_jacobian(np.asarray(w, dtype=float).reshape(3).copy())
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _so3_left_jacobian(w):
     theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
     W = _hat(w)
@@ -128,7 +129,7 @@ def se3_exp(xi: np.ndarray) -> np.ndarray:
     return se3_exp_compiled(np.asarray(xi, dtype=float).reshape(6).copy())
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def se3_exp_compiled(xi):
     """se3_exp compiled (the direct tracker's steps inside its compiled level loop use it)."""
     w = xi[3:6].copy()
@@ -145,7 +146,7 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     return se3_log_compiled(np.ascontiguousarray(T, dtype=float))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def se3_log_compiled(T):
     """se3_log compiled (the window's marginalization prior takes one per keyframe at every linearization)."""
     w = _so3_log(np.ascontiguousarray(T[:3, :3]))
@@ -161,7 +162,7 @@ def se3_inverse(T: np.ndarray) -> np.ndarray:
     return se3(R.T, -R.T @ t)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def se3_inverse_compiled(T):
     """se3_inverse compiled (the window's kernels invert each keyframe's pose)."""
     R_t = np.ascontiguousarray(T[:3, :3].T)
@@ -176,7 +177,7 @@ def se3_adjoint(T: np.ndarray) -> np.ndarray:
     return se3_adjoint_compiled(np.ascontiguousarray(T, dtype=float))
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def se3_adjoint_compiled(T):
     R = np.ascontiguousarray(T[:3, :3])
     A = np.zeros((6, 6))

@@ -23,9 +23,9 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import numba
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information
 
@@ -88,7 +88,7 @@ def refine_points(
     return PointRefinement(points, unsorted_inlier, unsorted_errors, in_front)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _refine(points, first_obs, pose, uv, information, R, t, intrinsics, robust_iterations, iterations, huber, chi2,
             tolerance):
     """Every point in place (``points``), its observations ``first_obs[j]:first_obs[j + 1]``. Returns each
@@ -113,7 +113,7 @@ def _refine(points, first_obs, pose, uv, information, R, t, intrinsics, robust_i
     return inlier, errors_px, in_front
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _observation(X, l, pose, uv, information, R, t, intrinsics):
     """Observation ``l`` of point X: e^T W e (chi-square units; inf behind the camera or where not finite), the
     point in its camera (R X + t) and the residual e = pi(R X + t) - x."""
@@ -129,7 +129,7 @@ def _observation(X, l, pose, uv, information, R, t, intrinsics):
     return (value if z > 0.0 and np.isfinite(value) else np.inf), x, y, z, e0, e1
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _cost(X, rows, active, pose, uv, information, R, t, intrinsics, huber):
     """The point's (robust) cost over its active observations; inf if one of them is behind its camera."""
     total = 0.0
@@ -144,7 +144,7 @@ def _cost(X, rows, active, pose, uv, information, R, t, intrinsics, huber):
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _gauss_newton(X, rows, active, pose, uv, information, R, t, intrinsics, iterations, huber, tolerance):
     """At most ``iterations`` steps of eq. 4 for one point, in place, until the step is below ``tolerance``
     relative to the point's position. A step that does not lower the cost is refused and retried with Marquardt
@@ -194,7 +194,7 @@ def _gauss_newton(X, rows, active, pose, uv, information, R, t, intrinsics, iter
             damping = max(damping * DAMPING_UP, DAMPING_START)
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _solve_3x3(H, g):
     """H^-1 g by the adjugate (H symmetric positive semi-definite, floored on its diagonal)."""
     c00 = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
