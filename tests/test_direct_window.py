@@ -188,6 +188,26 @@ def test_a_residual_out_of_view_when_an_optimization_ends_is_dropped_for_good():
     assert before.dropped_residuals[newest.frame_index].all()
 
 
+def test_a_state_with_a_nan_is_refused_without_reading_the_images():
+    """The linearization's arithmetic is compiled assuming finite numbers (fastmath), so a state with an inf or NaN
+    (a step that diverged) never reaches it: it gets an infinite energy and no residual in view, which the
+    optimization refuses as it refuses any step that does not lower the energy."""
+    sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
+    keyframes = true_window(sequence)
+    window = optimizer()
+    points = window._window_points(keyframes)
+    poses = [k.T_world_cam for k in keyframes]
+    affines = [np.asarray(k.affine, float) for k in keyframes]
+    idepth = np.concatenate([k.active_idepth for k in keyframes])
+    finite = window._linearize(keyframes, points, poses, affines, idepth, MarginalizationPrior())
+    assert np.isfinite(finite.energy) and (finite.status == 0).any()
+    for broken_idepth, broken_poses in ((np.where(np.arange(len(idepth)) == 7, np.nan, idepth), poses),
+                                        (idepth, [*poses[:-1], np.full((4, 4), np.inf)])):
+        system = window._linearize(keyframes, points, broken_poses, affines, broken_idepth, MarginalizationPrior())
+        assert system.energy == np.inf
+        assert (system.status == 1).all() and not system.H_kk.any() and not system.H_pp.any()
+
+
 def test_steps_with_a_fixed_scale_keep_the_window_scale():
     """With the scale fixed from the first step on (it is, once the window has a prior), the keyframes move
     only orthogonally to the window's scale direction (each translation along its offset from the gauge
