@@ -1,6 +1,7 @@
 """The start check's independent witness (vo_core/direct/epipolar_check.py): the ORB matches between a start's
 keyframes agree with their true motion, contradict a wrong one with the reason, and say nothing where the views
-are too close to tell. Beside mapping (live input), the start stays on probation until the witness answers."""
+are too close to tell. The start stays on probation until the witness answers: beside mapping (live input) when it is
+done, offline at the next window optimization."""
 
 from __future__ import annotations
 
@@ -70,21 +71,27 @@ def test_views_too_close_to_tell_say_nothing(room):
     assert reason is None and details["epipolar_pairs"] == 0
 
 
-def probation_with_witness_beside_mapping(room, poses):
-    """A start check whose witness runs beside mapping, taken through its window optimizations (all passing the
-    direct measures) with the room's keyframes at ``poses``; returns the check after the last one."""
-    config = StartCheckConfig(epipolar=EpipolarCheckConfig(beside_mapping=True))
+REPORT = WindowReport(6, 2.0, 1.0, 100, 1000, 10, np.ones(100, bool), 1.0)  # passes the direct measures
+
+
+def probation_keyframes(room, poses):
+    return [SimpleNamespace(**vars(k), active_idepth=np.ones(10), camera=room[0].camera)
+            for k in keyframes_at(room, KEYFRAMES, poses)]
+
+
+def probation_with_witness(room, poses, beside_mapping=True):
+    """A start check taken through its window optimizations (all passing the direct measures) with the room's
+    keyframes at ``poses``; returns the check after the last one, its witness started."""
+    config = StartCheckConfig(epipolar=EpipolarCheckConfig(beside_mapping=beside_mapping))
     check = StartCheck(config, KEYFRAMES[0], KEYFRAMES[1], "features")
-    keyframes = [SimpleNamespace(**vars(k), active_idepth=np.ones(10), camera=room[0].camera)
-                 for k in keyframes_at(room, KEYFRAMES, poses)]
-    report = WindowReport(6, 2.0, 1.0, 100, 1000, 10, np.ones(100, bool), 1.0)
+    keyframes = probation_keyframes(room, poses)
     for _ in range(config.window_optimizations + 1):  # the hand-over's own, then the probation's
-        assert check.observe(report, keyframes) is None
+        assert check.observe(REPORT, keyframes) is None
     return check
 
 
 def test_a_witness_beside_mapping_keeps_the_start_on_probation_until_it_refuses_it(room):
-    check = probation_with_witness_beside_mapping(room, wrong_poses(room))
+    check = probation_with_witness(room, wrong_poses(room))
     assert check.witness is not None
     check.witness.result(timeout=60)
     reason = check.witness_failure()
@@ -102,11 +109,26 @@ def test_a_witness_beside_mapping_that_agrees_lets_the_start_pass_once_it_answer
         return disagreement(self, keyframes, camera)
 
     monkeypatch.setattr(EpipolarCheck, "disagreement", held_back)
-    check = probation_with_witness_beside_mapping(room, None)
+    check = probation_with_witness(room, None)
     assert not check.passed and check.witness_failure() is None  # still on probation, not refused
     answer.set()
     check.witness.result(timeout=60)
     assert check.witness_failure() is None and check.passed
+
+
+@pytest.mark.parametrize("refused", [True, False])
+def test_an_offline_witness_answers_at_the_next_optimization_however_soon_it_is_done(room, refused):
+    """Offline the witness's verdict falls at the window optimization after the start's last one, not when its thread
+    gets done: the same run at any speed. Its work runs beside the frames in between."""
+    poses = wrong_poses(room) if refused else None
+    check = probation_with_witness(room, poses, beside_mapping=False)
+    check.witness.result(timeout=60)
+    assert check.witness_failure() is None and not check.passed  # done, but not due yet
+    reason = check.observe(REPORT, probation_keyframes(room, poses))
+    if refused:
+        assert reason is not None and "contradict" in reason and not check.passed
+    else:
+        assert reason is None and check.passed
 
 
 def test_a_closed_check_drops_the_pairs_it_has_not_started(room, monkeypatch):

@@ -142,12 +142,12 @@ def test_auto_uses_the_coarse_initializer_after_a_failed_feature_attempt():
     assert initializer_factory(fixed.direct, fixed.init, camera, 0)("features").name == "features"
 
 
-@pytest.mark.parametrize("threaded", [True, False])
-def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answered(monkeypatch, threaded):
-    """The epipolar witness beside mapping (live input): its refusal discards the start at a later frame, on the
-    tracking thread, with the witness's reason and every pose the start gave retracted; with a mapping thread and
-    without. The mapping thread waits for keyframes here, so that the probation ends at the same frame whatever the
-    machine's speed."""
+@pytest.mark.parametrize("threaded, beside_mapping", [(True, True), (False, True), (False, False)])
+def test_a_start_the_witness_refuses_is_discarded_once_it_answered(monkeypatch, threaded, beside_mapping):
+    """The epipolar witness's refusal discards the start at a later frame than its last window optimization, on the
+    tracking thread, with the witness's reason and every pose the start gave retracted: beside mapping (live input)
+    with a mapping thread and without, and offline. The mapping thread waits for keyframes here, so that the
+    probation ends at the same frame whatever the machine's speed."""
     refusals = []
 
     def refuse_the_first_start(self, keyframes, camera):
@@ -157,7 +157,7 @@ def test_a_start_the_witness_refuses_beside_mapping_is_discarded_once_it_answere
 
     monkeypatch.setattr(EpipolarCheck, "disagreement", refuse_the_first_start)
     results = run_with_start(wrong=False, overrides=(f"mapping.threaded={str(threaded).lower()}",
-                                                     "direct.start_check.epipolar.beside_mapping=true"))
+                                                     f"direct.start_check.epipolar.beside_mapping={str(beside_mapping).lower()}"))
     rejected = events_of(results, EventKind.INITIALIZATION_REJECTED)
     assert len(rejected) == 1 and "contradict" in rejected[0].details["reason"]
     assert rejected[0].details["epipolar_disagreeing"] == 3  # the witness's measures

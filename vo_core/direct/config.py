@@ -205,10 +205,10 @@ class EpipolarCheckConfig:
     # The start is refused where at least this many pairs disagree, and more than half of the qualified ones.
     min_disagreeing_pairs: int = 2
     seed: int = 0  # of the RANSAC that tells a plane (two_view.estimate_models): the same input, the same verdict
-    # Live input (``fdmo run --realtime``): the witness runs on a thread of its own, beside mapping, and the start
-    # stays on probation until it answers. On the mapper it took 1-2 s on two cores, during which no keyframe was
-    # made and tracking went on against an ever older one (teddy at 30 Hz: 56 frames, ATE 20x the offline run's).
-    # Offline it runs where the start's last window optimization runs, which keeps runs deterministic.
+    # Live input (``fdmo run --realtime``): the witness answers when it is done, beside mapping. Waited for on the
+    # mapper it took 1-2 s on two cores, during which no keyframe was made and tracking went on against an ever
+    # older one (teddy at 30 Hz: 56 frames, ATE 20x the offline run's). Offline it answers at the window
+    # optimization after the start's last one, which keeps runs deterministic.
     beside_mapping: bool = False
 
 
