@@ -305,18 +305,24 @@ def retimed_drop():
             for k, frame in enumerate(kept)]
 
 
+JUMP_SEEDS = 8  # at most this many seeds for both of the retimed jump's paths
+
+
 def test_a_jump_the_timestamps_do_not_show_is_caught_by_the_image_motion_or_lost(clean_ate):
     """After a retimed drop nothing in the timestamps says the camera jumped, and the jump frame must not pass as
     trusted. Either no motion hypothesis converges there (lost: fdmo recovers from the feature map, direct starts
     again), or one does, and the image moved many times what it moved frame to frame: the frame is suspect, the
     feature map checks it (fdmo) or the divergence is reported (direct, which keeps the pose). Which of the two
-    depends on the pixel selection's random draws (at seeds 0 and 1 one of each): both paths are taken here."""
+    depends on the pixel selection's random draws, and on the last bits of the arithmetic (at 1e9a382 seeds 0-3
+    take the image motion's path, 4 and 5 are lost): seeds are run until both paths were taken, each checked."""
     frames = retimed_drop()
     truth_poses = np.array([SMOOTH.ground_truth.poses[i] for i in range(FRAMES)
                             if not FAULT_START <= i < FAULT_START + FAULT_FRAMES])
     truth = Trajectory(np.array([f.timestamp for f in frames]), truth_poses)
     paths = set()
-    for seed in (0, 1):
+    for seed in range(JUMP_SEEDS):
+        if paths == {"lost", "image motion"}:
+            break
         for method, flagged in (("fdmo", (EventKind.TRACKING_CHECKED, EventKind.DIVERGENCE_DETECTED)),
                                 ("direct", (EventKind.DIVERGENCE_DETECTED,))):
             ate, results, _ = run(method, frames, ground_truth=truth, overrides=[f"seed={seed}"])
