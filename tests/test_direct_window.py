@@ -189,9 +189,9 @@ def test_a_residual_out_of_view_when_an_optimization_ends_is_dropped_for_good():
 
 
 def test_a_state_with_a_nan_is_refused_without_reading_the_images():
-    """The linearization's arithmetic is compiled assuming finite numbers (fastmath), so a state with an inf or NaN
-    (a step that diverged) never reaches it: it gets an infinite energy and no residual in view, which the
-    optimization refuses as it refuses any step that does not lower the energy."""
+    """A state with an inf or NaN (a step that diverged) gets an infinite energy and no residual in view, which the
+    optimization refuses as it refuses any step that does not lower the energy (its points with a NaN would
+    otherwise just leave the view, and the others' energy could look lower)."""
     sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
     keyframes = true_window(sequence)
     window = optimizer()

@@ -313,8 +313,9 @@ def test_a_jump_the_timestamps_do_not_show_is_caught_by_the_image_motion_or_lost
     trusted. Either no motion hypothesis converges there (lost: fdmo recovers from the feature map, direct starts
     again), or one does, and the image moved many times what it moved frame to frame: the frame is suspect, the
     feature map checks it (fdmo) or the divergence is reported (direct, which keeps the pose). Which of the two
-    depends on the pixel selection's random draws, and on the last bits of the arithmetic (at 1e9a382 seeds 0-3
-    take the image motion's path, 4 and 5 are lost): seeds are run until both paths were taken, each checked."""
+    depends on the pixel selection's random draws and on the last bits of the arithmetic (seed 0 is lost and seed 1
+    takes the image motion's path; a change of rounding once sent seeds 0-3 the image motion's way and lost 4 and
+    5): seeds are run until both paths were taken, each checked."""
     frames = retimed_drop()
     truth_poses = np.array([SMOOTH.ground_truth.poses[i] for i in range(FRAMES)
                             if not FAULT_START <= i < FAULT_START + FAULT_FRAMES])

@@ -9,11 +9,6 @@ Intensity and gradients are sampled by exact bilinear interpolation of a packed 
 (intensity, d/du, d/dv), pixel (0, 0) at the centre of the top-left pixel; the window's linearization, which reads
 many images at once, computes the same numbers from the intensity alone (bilinear_gradient).
 
-No kernel uses fastmath: numba compiles a shared helper (warp_ray, bilinear3, inside) once per process, with
-the flags of the first kernel that calls it, and every other kernel then links that version. A fastmath
-caller would change the tracker's and the immature points' arithmetic depending on which kernel compiled
-first (or what the cache holds), and the same input would no longer give the same trajectory (measured: 10 %
-faster window linearization, a different teddy trajectory depending on the cache).
 """
 
 from __future__ import annotations
@@ -394,7 +389,7 @@ def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, 
 @kernel(parallel=True)
 def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, host_start, images, image_slots, R, t,
                          R0, t0, adjoint0, factor, offset, host_b, active, dropped, intrinsics, border, huber,
-                         outlier_energy, weight_component):
+                         outlier_energy, weight_component, with_terms):
     """The Gauss-Newton system of the window's photometric energy: every point of every active host keyframe in
     every other keyframe (DSO's PointFrameResidual::linearize and the accumulation of EnergyFunctional, all
     residuals in one pass).
@@ -424,19 +419,20 @@ def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, 
 
     Returns (energy, status, H_kk, b_k, H_pk, H_pp, b_p): status[target, i] is 0 in, 1 out (also for the point's
     own host and inactive hosts), 2 outlier; H_pk (P, 8K) is the transposed keyframe-point coupling; the
-    points' blocks H_pp are scalars.
+    points' blocks H_pp are scalars. Without ``with_terms`` only the energy and status are computed (the system is
+    zero): for a state whose system no step will be solved from (a fifth less time).
     """
     n_kf = len(host_start) - 1
     blocks = _point_blocks(host_start, active)
     status, H_pk, H_pp, b_p, M_blocks, m_blocks, block_energy = _linearization_buffers(color.shape[0], n_kf,
                                                                                         len(blocks))
     if not (_all_finite(idepth) and _all_finite(R) and _all_finite(t) and _all_finite(R0) and _all_finite(t0)):
-        return _diverged_state(status, H_pk, H_pp, b_p)
+        return _diverged_state(status, H_pk, H_pp, b_p)  # a step that diverged: refused whatever else it does
     for j in numba.prange(len(blocks)):
         block_energy[j] = _linearize_points(
             blocks[j, 0], blocks[j, 1], blocks[j, 2], pattern_rays, center_rays, idepth, color, host_weight, images,
             image_slots, R, t, R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber,
-            outlier_energy, weight_component, status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
+            outlier_energy, weight_component, with_terms, status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
     energy, H_kk, b_k = _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
     return energy, status, H_kk, b_k, H_pk, H_pp, b_p
 
@@ -457,7 +453,7 @@ def _all_finite(array):
 @kernel
 def _diverged_state(status, H_pk, H_pp, b_p):
     """window_linearization's answer for a state with inf or NaN (a step that diverged): infinite energy, no residual
-    in view, no terms (_linearize_points may not see such numbers)."""
+    in view, no terms."""
     n_kf = status.shape[0]
     return np.inf, status, np.zeros((8 * n_kf, 8 * n_kf)), np.zeros(8 * n_kf), H_pk, H_pp, b_p
 
@@ -491,10 +487,6 @@ def _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
     return energy, H_kk, b_k
 
 
-# A pattern pixel counts as in front of the target camera above this depth, in units of the host's depth of its point
-# (warp_ray's third coordinate): a point any closer to the target's centre projects far outside the image anyway.
-MIN_WARPED_DEPTH = 1e-9
-
 # How many points ahead of its reads the window's linearization asks the cache for a point's pixels (prefetch_patch):
 # 1, 2 and 4 gave 19.4, 19.0 and 19.0 ms against 22.8 over five captured teddy calls on one thread.
 PREFETCH_AHEAD = 2
@@ -522,14 +514,10 @@ def _point_blocks(host_start, active):
     return blocks
 
 
-# The residuals' arithmetic may be reordered and vectorized (fastmath: the pattern's sums, the Huber weights): 13 %
-# less time for a teddy window's linearization, the numbers equal to about 1e-15. Its inputs are finite
-# (window_linearization tests them), and a pattern pixel is only read where its depth in the target is above
-# MIN_WARPED_DEPTH, so no inf or NaN can reach an image index.
-@kernel(fastmath=True)
+@kernel
 def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, host_weight, images, image_slots, R, t,
                       R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber, outlier_energy,
-                      weight_component, status, H_pk, H_pp, b_p, M_block, m_block):
+                      weight_component, with_terms, status, H_pk, H_pp, b_p, M_block, m_block):
     """window_linearization's work for points first..end-1 of host keyframe h: their rows of status, H_pk, H_pp and
     b_p, and in ``M_block[tg]`` / ``m_block[tg]`` their part of each target's local 9-parameter system (upper
     triangle). Returns their energy."""
@@ -576,7 +564,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
                 inverse_z = 1.0 / z
                 Ku[k] = fx * (xc + pattern_shift[k, 0]) * inverse_z + cx
                 Kv[k] = fy * (yc + pattern_shift[k, 1]) * inverse_z + cy
-                out |= not (z > MIN_WARPED_DEPTH and inside(Ku[k], Kv[k], width, height, border))
+                out |= not (z > 0.0 and inside(Ku[k], Kv[k], width, height, border))
             if out:
                 continue
             for k in range(pattern):
@@ -595,6 +583,8 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
                 continue
             status[tg, i] = 0
             energy += point_energy
+            if not with_terms:
+                continue
             # The pattern's sums: gradient outer products, affine and residual terms.
             sxx = sxy = syy = sxa = sya = sx = sy = saa = sa = s1 = sxr = syr = sar = sr = 0.0
             for k in range(pattern):

@@ -128,12 +128,17 @@ class WindowOptimizer:
             trial_poses = [se3_exp(step_keyframes[i, :6]) @ T for i, T in enumerate(poses)]
             trial_affines = [ab + step_keyframes[i, 6:] for i, ab in enumerate(affines)]
             trial_idepth = np.maximum(idepth + step_points, self.config.min_inverse_depth)
-            trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first)
+            small_step = np.abs(step_keyframes).max(initial=0.0) < self.config.min_step
+            # The last step's trial (or one after which the loop ends, if accepted) needs only its energy: no step is
+            # solved from its system.
+            last = iterations == self.config.max_iterations or small_step
+            trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first,
+                                    with_terms=not last)
             if trial.energy < energy:
                 small_gain = energy - trial.energy < self.config.min_relative_decrease * energy
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
-                if small_gain or np.abs(step_keyframes).max(initial=0.0) < self.config.min_step:
+                if small_gain or small_step:
                     break
             else:
                 lam *= self.config.lambda_increase
@@ -201,10 +206,11 @@ class WindowOptimizer:
         )
 
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
-                   only_host: int | None = None, start: "_System | None" = None) -> "_System":
-        """The Gauss-Newton system and energy at a state. A residual that was in view at the ``start`` of the
-        optimization and is out now is charged the outlier energy: a step must not look better by pushing points
-        out of the images (DSO keeps the residual set of an optimization fixed)."""
+                   only_host: int | None = None, start: "_System | None" = None, with_terms: bool = True) -> "_System":
+        """The Gauss-Newton system and energy at a state (without ``with_terms``: the energy and the residuals'
+        status, the system zero). A residual that was in view at the ``start`` of the optimization and is out now is
+        charged the outlier energy: a step must not look better by pushing points out of the images (DSO keeps the
+        residual set of an optimization fixed)."""
         n_kf = len(keyframes)
         # First-estimate Jacobians: a keyframe in the prior is linearized at the prior's x0, the others where
         # they are now.
@@ -220,7 +226,7 @@ class WindowOptimizer:
                 points.pattern_rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
                 np.array([ab[1] for ab in affines], float), active, points.dropped, keyframes[0].camera.intrinsics,
-                self.config.border, self.huber, self.outlier_energy, self.weight_component,
+                self.config.border, self.huber, self.outlier_energy, self.weight_component, with_terms,
             )
         if start is not None:
             left_view = (status == POINT_OUT) & (start.status == POINT_IN)
