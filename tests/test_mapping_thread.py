@@ -65,13 +65,26 @@ def test_offline_threaded_mapping_gives_the_synchronous_keyframes_and_poses(sync
             assert np.array_equal(threaded.T_world_cam, synchronous_result.T_world_cam), threaded.frame_index
 
 
-def test_live_threaded_mapping_never_waits_for_keyframes_and_stays_accurate(synchronous):
-    """DSO's real-time mode: tracking goes on while a keyframe is mapped, a later frame becomes the next keyframe."""
+def test_live_threaded_mapping_never_waits_for_keyframes_and_stays_accurate(synchronous, monkeypatch):
+    """DSO's real-time mode: tracking goes on while a keyframe is mapped, and no keyframe is asked for while one is
+    pending (a later frame becomes the next keyframe). How many keyframes that leaves depends on the machine's speed:
+    about the synchronous run's number (13 on this sequence; 14 once a mapper that no longer waited for the start's
+    witness kept up with every request), not more than a few above it."""
+    asked_while_pending = []
+    submit = MappingThread.submit
+
+    def watched_submit(self, frame_index, timestamp, job, keyframe=False, **kwargs):
+        if keyframe and self.keyframe_pending:
+            asked_while_pending.append(frame_index)
+        return submit(self, frame_index, timestamp, job, keyframe=keyframe, **kwargs)
+
+    monkeypatch.setattr(MappingThread, "submit", watched_submit)
     sync_ate, sync_results = synchronous
     ate, results, odometry = run("fdmo", SMOOTH, overrides=[*THREADED, "mapping.wait_for_keyframes=false"])
     odometry.close()
     assert all(r.T_world_cam is not None for r in results[-40:])
-    assert sum(r.is_keyframe for r in results) <= sum(r.is_keyframe for r in sync_results)
+    assert not asked_while_pending
+    assert sum(r.is_keyframe for r in results) <= sum(r.is_keyframe for r in sync_results) + 2
     assert ate < 3 * sync_ate
 
 
