@@ -156,8 +156,8 @@ def test_a_start_the_witness_refuses_is_discarded_once_it_answered(monkeypatch, 
         return reason, {"epipolar_pairs": 3, "epipolar_disagreeing": 3 if reason else 0}
 
     monkeypatch.setattr(EpipolarCheck, "disagreement", refuse_the_first_start)
-    results = run_with_start(wrong=False, overrides=(f"mapping.threaded={str(threaded).lower()}",
-                                                     f"direct.start_check.epipolar.beside_mapping={str(beside_mapping).lower()}"))
+    beside = f"direct.start_check.epipolar.beside_mapping={str(beside_mapping).lower()}"
+    results = run_with_start(wrong=False, overrides=(f"mapping.threaded={str(threaded).lower()}", beside))
     rejected = events_of(results, EventKind.INITIALIZATION_REJECTED)
     assert len(rejected) == 1 and "contradict" in rejected[0].details["reason"]
     assert rejected[0].details["epipolar_disagreeing"] == 3  # the witness's measures

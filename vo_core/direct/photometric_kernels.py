@@ -8,7 +8,6 @@ work in a fraction of that (the whole tracking of a frame went from ~26 ms to a 
 Intensity and gradients are sampled by exact bilinear interpolation of a packed (h, w, 3) float32 image
 (intensity, d/du, d/dv), pixel (0, 0) at the centre of the top-left pixel; the window's linearization, which reads
 many images at once, computes the same numbers from the intensity alone (bilinear_gradient).
-
 """
 
 from __future__ import annotations
