@@ -34,12 +34,19 @@ class TwoViewConfig:
     ransac_iterations: int = 200  # ORB-SLAM: 200 sets of 8 correspondences, shared by both models
     sample_size: int = 8  # ORB-SLAM: 8 points for both the normalized DLT (H) and the 8-point algorithm (F)
     sigma_px: float = 1.0  # ORB-SLAM: measurement noise of one pixel
+    essential_confidence: float = 0.999  # of the five-point RANSAC on F's inliers (cv2.findEssentialMat's default)
     chi2_homography: float = 5.99  # 3.2 eq. 3: T_H (chi-square 95 %, 2 DOF)
     chi2_fundamental: float = 3.84  # 3.2 eq. 3: T_F (chi-square 95 %, 1 DOF)
     score_gamma: float = 5.99  # 3.2 eq. 3: Gamma = T_H, so both models score on the same scale
     homography_ratio: float = 0.4  # 3.2 eq. 1: homography when S_H / (S_H + S_F) > 0.4
     max_reprojection_px: float = 2.0  # ORB-SLAM CheckRT: squared error < 4 sigma^2 in both views
     min_parallax_deg: float = 1.0  # ORB-SLAM Initialize(): minParallax = 1 degree
+    # The baseline over the median depth of the good points. A start is a triangulation, and FDMO (4.4) triangulates
+    # none below baseline / depth 0.02 (the feature map's rule); DSO's coarse initializer snaps at translation x
+    # mean inverse depth sqrt(alphaK / alphaW) = 2.5 / 150 = 0.017. ORB-SLAM's parallax rule alone passed a start at
+    # 0.014 taken from 1.3 degrees of its 50th largest angle (EuRoC MH05, a drone taking off): the map's scale was
+    # 50x off for 30 frames. Right starts on the shared folders: 0.043-0.091.
+    min_baseline_depth_ratio: float = 0.02
     min_triangulated: int = 50  # ORB-SLAM: minTriangulated = 50 good points for a hypothesis
     min_good_ratio: float = 0.9  # ORB-SLAM: the best hypothesis explains 90 % of the model's inliers
     ambiguity_ratio: float = 0.75  # ORB-SLAM ReconstructH: second best < 0.75 best; ReconstructF uses 0.7
@@ -71,6 +78,7 @@ class TwoViewResult:
     points_first: np.ndarray  # (N, 3) in the first camera, valid where ``good``
     good: np.ndarray  # (N,) bool: model inlier, in front of both cameras, reprojecting well
     parallax_deg: float
+    baseline_depth_ratio: float  # the baseline over the median depth of the good points
     scores: ModelScores
     hypotheses_good: list[int]  # good points of every hypothesis, for the event
 
@@ -223,12 +231,26 @@ def _check_motion(
     return MotionHypothesis(T_first_second, points, good, parallax)
 
 
-def _motion_hypotheses(model: str, scores: ModelScores, K: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(R, t) candidates: Faugeras' decomposition of H (up to 4) or the 4 solutions of E = K^T F K."""
+def _motion_hypotheses(model: str, scores: ModelScores, K: np.ndarray, uv_first: np.ndarray, uv_second: np.ndarray,
+                       config: TwoViewConfig) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(R, t) candidates: Faugeras' decomposition of H (up to 4), or the 4 solutions of the essential matrix of the
+    fundamental matrix's inliers.
+
+    That essential matrix is estimated anew by the calibrated five-point solver (cv2.findEssentialMat, USAC_ACCURATE:
+    RANSAC with local optimization and a final fit to all its inliers; deterministic), where
+    ORB-SLAM and 004 decompose E = K^T F K: an eight-point F carries no essential constraint (two equal singular
+    values), and its projection onto one moved the geometry enough that no motion triangulated the inliers within
+    the reprojection threshold (TUM fr1/desk at half its frame rate, 10 degrees of rotation: 0 of 115, 182 and 258
+    inliers; with the five-point E: 114, 181 and 256)."""
     if model == "H":
         _, rotations, translations, _ = cv2.decomposeHomographyMat(scores.H, K)
         return list(zip(rotations, translations))
-    return _essential_motions(K.T @ scores.F @ K)
+    inliers = scores.inliers_f
+    if inliers.sum() < 5:
+        return []
+    E, _ = cv2.findEssentialMat(uv_first[inliers], uv_second[inliers], K, cv2.USAC_ACCURATE,
+                                config.essential_confidence, config.sigma_px)
+    return [] if E is None else _essential_motions(E[:3])
 
 
 def _essential_motions(E: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -296,10 +318,10 @@ def reconstruct(
     inliers = scores.inliers_h if model == "H" else scores.inliers_f
     hypotheses = [
         _check_motion(camera, R, t, uv_first, uv_second, inliers, config)
-        for R, t in _motion_hypotheses(model, scores, camera.K)
+        for R, t in _motion_hypotheses(model, scores, camera.K, uv_first, uv_second, config)
     ]
     counts = [int(h.good.sum()) for h in hypotheses]
-    best_count = max(counts)
+    best_count = max(counts, default=0)
     needed = max(config.min_good_ratio * inliers.sum(), config.min_triangulated)
     prefix = f"{model} (R_H {scores.ratio:.2f})"
     if best_count < needed:
@@ -311,4 +333,7 @@ def reconstruct(
         raise TwoViewFailure(f"{prefix}: ambiguous, two motions explain {ranked[0]} and {ranked[1]} points")
     if best.parallax_deg < config.min_parallax_deg:
         raise TwoViewFailure(f"{prefix}: parallax {best.parallax_deg:.2f} deg below {config.min_parallax_deg}")
-    return TwoViewResult(model, best.T_first_second, best.points, best.good, best.parallax_deg, scores, counts)
+    ratio = 1.0 / float(np.median(best.points[best.good, 2]))  # the baseline is 1
+    if ratio < config.min_baseline_depth_ratio:
+        raise TwoViewFailure(f"{prefix}: baseline / median depth {ratio:.4f} below {config.min_baseline_depth_ratio}")
+    return TwoViewResult(model, best.T_first_second, best.points, best.good, best.parallax_deg, ratio, scores, counts)

@@ -140,6 +140,7 @@ class FeatureInitializer:
         model_details = {
             "model": geometry.model, "score_h": round(scores.score_h, 1), "score_f": round(scores.score_f, 1),
             "ratio_h": round(scores.ratio, 3), "parallax_deg": round(geometry.parallax_deg, 2),
+            "baseline_depth_ratio": round(geometry.baseline_depth_ratio, 4),
         }
         low, high = self.config.model_choice.ambiguous_ratio_h
         if low < scores.ratio <= high:
