@@ -166,3 +166,18 @@ def test_a_start_the_witness_refuses_is_discarded_once_it_answered(monkeypatch, 
                    if started <= r.frame_index < rejected[0].frame_index and r.T_world_cam is not None]
     assert posed_in_it and rejected[0].details["retracted"] == posed_in_it
     assert any(e.frame_index == rejected[0].frame_index for e in events_of(results, EventKind.INITIALIZATION_STARTED))
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_a_rejected_start_takes_its_feature_map_with_it(threaded):
+    """FDMO: the feature map grown at a start's keyframes is that start's wrong structure; once the start is
+    rejected, nothing is recovered from it (TUM fr1/desk: a start refused at frame 39 was recovered from at frame 40,
+    at its scale): the next pose comes from the next start."""
+    results = run_with_start(wrong=True, overrides=("method=fdmo", f"mapping.threaded={str(threaded).lower()}"))
+    rejected = events_of(results, EventKind.INITIALIZATION_REJECTED)
+    assert rejected
+    after = [r for r in results if r.frame_index > rejected[0].frame_index]
+    restarted = next(r.frame_index for r in after if any(e.kind is EventKind.INITIALIZATION_SUCCEEDED for e in r.events))
+    between = [e.kind for r in after if r.frame_index < restarted for e in r.events]
+    assert EventKind.RECOVERY_SUCCEEDED not in between and EventKind.DIRECT_RESTARTED not in between
+    assert all(r.T_world_cam is None for r in after if r.frame_index < restarted - 1)

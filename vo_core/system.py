@@ -259,6 +259,7 @@ class Odometry:
         else:
             self._own_the_maps()
             self._initialize(frame, result)
+        self._forget_rejected_start(result)
         self._count_lost(frame, result)
         if result.T_world_cam is not None:
             self.posed = (self.posed + [(frame.timestamp, result.T_world_cam)])[-self.config.fdmo.prior_frames:]
@@ -272,7 +273,16 @@ class Odometry:
         if self.direct.failed_start is None:
             return False
         self._own_the_maps()
-        return self.direct.discard_failed_start(frame, result)
+        discarded = self.direct.discard_failed_start(frame, result)
+        self._forget_rejected_start(result)
+        return discarded
+
+    def _forget_rejected_start(self, result: FrameResult) -> None:
+        """A start the direct half rejected (start_check.py) takes its feature map with it: that map holds the
+        rejected start's keyframes only, at its wrong structure, and a recovery from it would bring the start back
+        (TUM fr1/desk: a start refused at frame 39 was recovered from at frame 40, its scale kept)."""
+        if self.features is not None and any(e.kind is EventKind.INITIALIZATION_REJECTED for e in result.events):
+            self._forget_feature_map()
 
     def _repeats_previous(self, raw_frame, result: FrameResult) -> bool:
         """A frame whose image is the previous frame's, bit for bit, is a camera or driver that stalled: it says
@@ -399,11 +409,16 @@ class Odometry:
                 return
         outcome = self.direct.initialize(frame, result)
         if outcome is not None and self.features is not None:
-            if not self._feature_map_empty:
-                self.features.reset()  # the new map has a new scale: the old feature map cannot serve it
-                self.feature_keyframes_given.clear()
-                self.posed = []
+            self._forget_feature_map()  # the new map has a new scale: the old feature map cannot serve it
             self._map_features(result, initialization=outcome)
+
+    def _forget_feature_map(self) -> None:
+        """The feature map starts over with the direct map's next start, and so does the motion it predicts from."""
+        self._own_the_maps()
+        if not self._feature_map_empty:
+            self.features.reset()
+        self.feature_keyframes_given.clear()
+        self.posed = []
 
     @property
     def _feature_map_empty(self) -> bool:
