@@ -14,6 +14,7 @@ from vo_core.direct.odometry import DirectOdometry
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.errors import InputError
 from vo_core.events import EventKind, FrameResult
+from vo_core.synthetic import make_sequence
 from vo_core.system import Odometry
 
 CAMERA = small_camera(320, 240)
@@ -166,3 +167,17 @@ def test_tracking_from_a_given_prior_continues_the_trajectory(smooth_run):
     )
     assert step_estimated == pytest.approx(step_true * scale, rel=0.3)
     assert result.rmse_after <= result.rmse_before
+
+
+def test_window_energies_are_photometric_and_the_priors_term_is_reported_apart():
+    """A sum of robust squared residuals is never negative; the marginalization prior's term (a quadratic about its
+    linearization point, its constant dropped as DSO drops it) may be, and is reported apart once keyframes have
+    been marginalized."""
+    sequence = make_sequence("smooth", num_frames=70, seed=0, width=320, height=240)
+    odometry = Odometry(load_config(overrides=["method=direct"]), sequence.camera)
+    events = [(r.frame_index, e) for r in map(odometry.track, sequence) for e in r.events]
+    optimized = [(frame, e.details) for frame, e in events if e.kind is EventKind.WINDOW_OPTIMIZED]
+    assert optimized and all(d["energy_before"] >= 0 and d["energy_after"] >= 0 for _, d in optimized)
+    marginalized = [frame for frame, e in events if e.kind is EventKind.KEYFRAME_MARGINALIZED]
+    assert marginalized
+    assert any(d["prior_energy_after"] != 0 for frame, d in optimized if frame > marginalized[0])

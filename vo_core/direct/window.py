@@ -74,9 +74,17 @@ class _WindowPoints:
 
 @dataclass
 class WindowReport:
+    """An optimization's outcome. Its energies are the photometric ones (robust squared residuals, outliers charged
+    the outlier energy): never negative, comparable from one optimization to the next. The marginalization prior's
+    term is reported apart: it is the quadratic b^T d + d^T H d / 2 in the step d from the prior's linearization
+    point, whose constant DSO drops too, so it is negative wherever the window moved the way the prior pulls (the
+    sum of both is what the optimization lowers)."""
+
     iterations: int
     energy_before: float
     energy_after: float
+    prior_energy_before: float
+    prior_energy_after: float
     points: int
     residuals: int
     outliers: int  # residuals in view beyond the outlier threshold (DSO's setting_outlierTH)
@@ -90,7 +98,8 @@ class WindowReport:
     def as_details(self) -> dict:
         return {
             "iterations": self.iterations, "energy_before": round(self.energy_before, 1),
-            "energy_after": round(self.energy_after, 1), "points": self.points, "residuals": self.residuals,
+            "energy_after": round(self.energy_after, 1), "prior_energy_before": round(self.prior_energy_before, 1),
+            "prior_energy_after": round(self.prior_energy_after, 1), "points": self.points, "residuals": self.residuals,
             "outliers": self.outliers, "removed_points": self.removed_points, "ms": round(self.ms, 1),
         }
 
@@ -118,7 +127,7 @@ class WindowOptimizer:
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
         system = self._linearize(keyframes, points, poses, affines, idepth, prior)
-        energy_before = energy = system.energy
+        energy = system.energy
         first = system
         lam = self.config.initial_lambda
         iterations = 0
@@ -135,7 +144,8 @@ class WindowOptimizer:
             trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first,
                                     with_terms=not last)
             if trial.energy < energy:
-                small_gain = energy - trial.energy < self.config.min_relative_decrease * energy
+                # Relative to the photometric energy: the total can be negative (the prior's term; WindowReport).
+                small_gain = energy - trial.energy < self.config.min_relative_decrease * system.photometric_energy
                 poses, affines, idepth, system, energy = trial_poses, trial_affines, trial_idepth, trial, trial.energy
                 lam *= self.config.lambda_decrease
                 if small_gain or small_step:
@@ -144,8 +154,8 @@ class WindowOptimizer:
                 lam *= self.config.lambda_increase
         kept = self._write_back(keyframes, poses, affines, idepth, system)
         return WindowReport(
-            iterations, energy_before, energy, len(idepth), system.residuals, int(system.outliers.sum()), kept,
-            (time.perf_counter() - start) * 1000.0,
+            iterations, first.photometric_energy, system.photometric_energy, first.prior_energy, system.prior_energy,
+            len(idepth), system.residuals, int(system.outliers.sum()), kept, (time.perf_counter() - start) * 1000.0,
         )
 
     @_BLAS.wrap(limits=1, user_api="blas")
@@ -232,8 +242,8 @@ class WindowOptimizer:
             left_view = (status == POINT_OUT) & (start.status == POINT_IN)
             energy += self.outlier_energy * np.count_nonzero(left_view)
         frame_ids = [k.frame_index for k in keyframes]
-        energy += prior.add_to(H_kk, b_k, frame_ids, poses, affines)
-        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, energy, status)
+        prior_energy = prior.add_to(H_kk, b_k, frame_ids, poses, affines)
+        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, energy, prior_energy, status)
 
     # ------------------------------------------------------------------------------------ solving
 
@@ -293,8 +303,14 @@ class _System:
     H_kp: np.ndarray  # (8K, P)
     H_pp: np.ndarray  # (P,) the points' blocks are scalars
     b_p: np.ndarray
-    energy: float
+    photometric_energy: float
+    prior_energy: float
     status: np.ndarray  # (K, P) each point's POINT_IN / OUT / OUTLIER in each keyframe (OUT in its host)
+
+    @property
+    def energy(self) -> float:
+        """What the optimization lowers: the photometric energy and the prior's term."""
+        return self.photometric_energy + self.prior_energy
 
     @property
     def inliers(self) -> np.ndarray:
