@@ -7,7 +7,7 @@ import pytest
 
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import NO_POINT, FeatureMap
-from vo_core.features.mapping import FeatureMapper
+from vo_core.features.mapping import FeatureMapper, seen_under_parallax
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.synthetic import make_sequence
@@ -250,3 +250,24 @@ def test_a_failed_search_around_the_estimate_contradicts_it_only_where_the_map_e
     assert not searched(5, 49).contradicts_estimate(config)  # KITTI, 20 dropped: few points expected, 10 % found
     assert not searched(30, 287).contradicts_estimate(config)  # 10 % found
     assert not RecoveryOutcome(False).contradicts_estimate(config)  # no search ran: nothing says anything
+
+
+def test_a_point_is_kept_only_where_its_views_see_it_under_a_triangulations_parallax():
+    """Two views 1 cm apart: a point 0.3 m away is seen under 1.9 degrees, one 10 m away under 0.06 (below
+    ORB-SLAM2's 1.15), where the structure-only adjustment slid points of the shared folders to 1e7-1e9 m; a third
+    view 1 m aside restores the far point's parallax; a point no view sees is not kept."""
+    centres = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    positions = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, 10.0], [0.0, 0.0, 10.0], [0.0, 0.0, 5.0]])
+    point_of = np.array([0, 0, 1, 1, 2])
+    two_views_far = seen_under_parallax(positions, point_of[:4], centres[:4], FeatureConfig().mapping.max_parallax_cos)
+    assert two_views_far.tolist() == [True, False, False, False]
+    point_of = np.array([0, 0, 2, 2, 2])
+    three_views = seen_under_parallax(positions, point_of, centres, FeatureConfig().mapping.max_parallax_cos)
+    assert three_views.tolist() == [True, False, True, False]
+
+
+def test_no_feature_point_is_farther_than_a_hundred_times_the_maps_median_distance(smooth_map):
+    feature_map, _, _ = smooth_map
+    points = feature_map.points.position[feature_map.points.alive]
+    distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    assert distance.max() < 100 * np.median(distance)

@@ -262,7 +262,10 @@ class FeatureMapper:
 
     def refine_structure(self, feature_map: FeatureMap, keyframes: list[FeatureKeyframe]) -> int:
         """Structure-only bundle adjustment (FDMO eqs. 3-6) of every point the keyframes observe, over their
-        observations in those keyframes; outlier observations leave, points behind a camera die."""
+        observations in those keyframes; outlier observations leave, and a point dies that lies behind a camera
+        or that its remaining views no longer see under the parallax a triangulation needs
+        (``_supported_by_parallax``): the adjustment slides such a point along its nearly parallel rays, to
+        millions of metres (teddy, KITTI, parking: up to 1.3e9 m), where it would still be matched in recovery."""
         frame_indices = [k.frame_index for k in keyframes]
         table = feature_map.observations(frame_indices)
         alive = feature_map.points.alive[table.point]
@@ -281,9 +284,21 @@ class FeatureMapper:
         feature_map.points.position[point_ids] = refined.points
         outliers = ~refined.inlier
         feature_map.remove_observations(keyframe_of[outliers], feature_of[outliers])
-        feature_map.remove_points(point_ids[~refined.in_front])
-        feature_map.update_normals(point_ids[refined.in_front])
+        keep = refined.in_front & self._seen_under_parallax(feature_map, point_ids, refined.points)
+        feature_map.remove_points(point_ids[~keep])
+        feature_map.update_normals(point_ids[keep])
         return int(outliers.sum())
+
+    def _seen_under_parallax(self, feature_map: FeatureMap, point_ids: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """(P,) whether the keyframes that observe each of the sorted ``point_ids`` (at ``positions``) see it under the
+        parallax a triangulation needs (``seen_under_parallax``)."""
+        table = feature_map.observations()
+        row = np.minimum(np.searchsorted(point_ids, table.point), len(point_ids) - 1)
+        mine = point_ids[row] == table.point
+        frames = np.array(sorted(feature_map.keyframes), np.int64)
+        centres = np.array([feature_map.keyframes[int(i)].centre for i in frames])
+        return seen_under_parallax(positions, row[mine], centres[np.searchsorted(frames, table.keyframe[mine])],
+                                   self.config.mapping.max_parallax_cos)
 
     # ------------------------------------------------------------------------------------ maintenance
 
@@ -331,3 +346,19 @@ class FeatureMapper:
                 culled.append(frame_index)
                 counts = None  # its views are gone, and the points it leaves with one view die
         return culled
+
+
+def seen_under_parallax(positions: np.ndarray, point_of: np.ndarray, centres: np.ndarray,
+                        max_parallax_cos: float) -> np.ndarray:
+    """(P,) whether the views at ``centres`` (one per observation of point ``point_of``) see each point at
+    ``positions`` under the parallax a triangulation needs (ORB-SLAM2's: rays whose cosine is below
+    ``max_parallax_cos``): the mean resultant length of the unit rays from the views to the point, cos(theta / 2) for
+    two rays theta apart, is below that of two rays at the least parallax (with more views, their spread, not one
+    stray pair, must carry the depth). A point with no view is not seen."""
+    rays = positions[point_of] - centres
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        sums = np.zeros_like(positions)
+        np.add.at(sums, point_of, rays)
+        resultant = np.linalg.norm(sums, axis=1) / np.bincount(point_of, minlength=len(positions))
+    return resultant < np.sqrt((1.0 + max_parallax_cos) / 2.0)
