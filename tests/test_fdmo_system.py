@@ -311,30 +311,32 @@ JUMP_SEEDS = 8  # at most this many seeds for both of the retimed jump's paths
 def test_a_jump_the_timestamps_do_not_show_is_caught_by_the_image_motion_or_lost(clean_ate):
     """After a retimed drop nothing in the timestamps says the camera jumped, and the jump frame must not pass as
     trusted. Either no motion hypothesis converges there (lost: fdmo recovers from the feature map, direct starts
-    again), or one does, and the image moved many times what it moved frame to frame: the frame is suspect, the
-    feature map checks it (fdmo) or the divergence is reported (direct, which keeps the pose). Which of the two
-    depends on the pixel selection's random draws and on the last bits of the arithmetic (seed 0 is lost and seed 1
-    takes the image motion's path; a change of rounding once sent seeds 0-3 the image motion's way and lost 4 and
-    5): seeds are run until both paths were taken, each checked."""
+    again), or one does, and either its final pose leaves most of the image unexplained (diverged), or the image
+    moved many times what it moved frame to frame: the frame is suspect, the feature map checks it (fdmo) or the
+    divergence is reported (direct, which keeps the pose). Which path depends on the pixel selection's random draws
+    and on the last bits of the arithmetic (a change of rounding once sent seeds 0-3 the image motion's way and lost
+    4 and 5): seeds are run until the lost path and another were taken, each checked."""
     frames = retimed_drop()
     truth_poses = np.array([SMOOTH.ground_truth.poses[i] for i in range(FRAMES)
                             if not FAULT_START <= i < FAULT_START + FAULT_FRAMES])
     truth = Trajectory(np.array([f.timestamp for f in frames]), truth_poses)
     paths = set()
     for seed in range(JUMP_SEEDS):
-        if paths == {"lost", "image motion"}:
-            break
         for method, flagged in (("fdmo", (EventKind.TRACKING_CHECKED, EventKind.DIVERGENCE_DETECTED)),
                                 ("direct", (EventKind.DIVERGENCE_DETECTED,))):
             ate, results, _ = run(method, frames, ground_truth=truth, overrides=[f"seed={seed}"])
             jump = next(r for r in results if r.frame_index == FAULT_START)
             lost = [e for e in jump.events if e.kind is EventKind.TRACKING_FAILED]
             checked = [e for e in jump.events if e.kind in flagged]
-            assert lost or (checked and "a jump the timestamps do not show" in checked[0].details["reason"])
-            paths.add("lost" if lost else "image motion")
+            reason = checked[0].details["reason"] if checked else ""
+            unexplained = "beyond the cutoff" in reason
+            assert lost or unexplained or "a jump the timestamps do not show" in reason
+            paths.add("lost" if lost else "unexplained" if unexplained else "image motion")
             if method == "fdmo":
                 assert ate < 2 * clean_ate + 1e-3
-    assert paths == {"lost", "image motion"}
+        if "lost" in paths and len(paths) > 1:
+            break
+    assert "lost" in paths and len(paths) > 1
 
 
 def test_the_motion_prior_judges_a_gap_only_where_the_motion_has_been_predictable():

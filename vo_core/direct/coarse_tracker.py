@@ -238,13 +238,21 @@ class CoarseTracker:
         self, frame: ImagePyramid, T_frame_ref: np.ndarray, affine: np.ndarray, exposure: float | None, level: int = 0
     ) -> float:
         """sqrt(mean Huber energy) of Eq. 2 at a given pose, with DSO's cutoff (calcRes)."""
+        return self.fit(frame, T_frame_ref, affine, exposure, level)[0]
+
+    def fit(
+        self, frame: ImagePyramid, T_frame_ref: np.ndarray, affine: np.ndarray, exposure: float | None, level: int = 0
+    ) -> tuple[float, float]:
+        """``rmse`` and the share of the terms beyond the cutoff (saturated: what the pose leaves unexplained)."""
         points = self.levels[level]
-        _, _, num_terms, _, energy, _ = level_residuals(
+        _, _, num_terms, saturated, energy, _ = level_residuals(
             points.rays, points.idepth, points.color, np.ascontiguousarray(T_frame_ref, dtype=float),
             np.asarray(affine, dtype=float), points.intrinsics, WARP_BORDER, frame[level].packed,
             self._exposure_ratio(exposure), self.reference_affine, float(self.config.huber_threshold),
             float(self.config.cutoff_threshold))
-        return float(np.sqrt(energy / num_terms)) if num_terms else float("inf")
+        if not num_terms:
+            return float("inf"), 1.0
+        return float(np.sqrt(energy / num_terms)), saturated / num_terms
 
     def track(
         self,

@@ -1,7 +1,7 @@
 """Whether a direct alignment can be trusted (FDMO section 4.2.1).
 
 FDMO's test: the optimization of Eq. 2 diverged when RMSE_after / RMSE_before > 1 + epsilon, epsilon = 0.1,
-the RMSE before being the one at the constant-velocity guess. It misses a case that matters: after a jump the
+the RMSE before being the one at the constant-velocity guess, both measured alike (``DirectTracking.rmse_end``). It misses a case that matters: after a jump the
 guess is so wrong that the optimization lowers the RMSE while locking onto a wrong pose (teddy with 20 frames
 dropped at frame 100: RMSE 15.6 -> 13.5, ratio 0.87, a pose 20 cm off). DSO itself knows something is off
 then: it tried every motion hypothesis and none came within ``retrack_threshold`` (1.5) of the last frame's
@@ -14,6 +14,8 @@ did (``sudden_motion_factor`` times their median): a jump the timestamps do not 
 own frame-drop protocol, a shake). There DSO's guesses can fit the new view with a normal RMSE at a wrong pose (teddy,
 20 frames dropped and retimed: RMSE 6.35 against 6.0 before, 85 % of the translation missing, the image moved 22x
 the last frames' median), which nothing else notices.
+A result whose final pose leaves most of its residuals beyond the cutoff (a black frame: all of them) explains too
+little of the image to be kept unchecked: it is DIVERGED too, the RMSE ratio being blind there (both ends saturated).
 A result that did not converge at all is LOST (DSO's lost: no hypothesis converged, too few residuals).
 """
 
@@ -45,6 +47,11 @@ class DivergenceConfig:
     # shared folders a frame moves at most 3.9x (teddy), 2.3x (KITTI), 1.4x (parking) the median of the 10 before;
     # the first frame after a retimed jump 19-22x (teddy, 10-30 frames), 9x (KITTI, 5), 5.6x (parking, 10).
     sudden_motion_factor: float = 5.0
+    # Diverged where the final pose leaves more than this share of the terms beyond the tracker's cutoff: the
+    # alignment then explains less than half of what it sees, and a truncated (cutoff) energy is decided by the rest
+    # (its breakdown point). A black frame leaves all of them; clean frames of the shared folders at most 17 %,
+    # TUM fr1/desk at half its frame rate at most 70 % (9 of 298 frames above a half).
+    max_saturated_share: float = 0.5
 
 
 @dataclass
@@ -59,7 +66,9 @@ class Judgement:
         return {
             "verdict": self.verdict.value, "reason": self.reason, "ratio": rounded_rmse(self.ratio),
             "threshold": self.threshold, "rmse_before": rounded_rmse(tracking.rmse_before),
-            "rmse_after": rounded_rmse(tracking.rmse_after), "last_rmse": rounded_rmse(tracking.last_rmse),
+            "rmse_end": rounded_rmse(tracking.rmse_end), "rmse_after": rounded_rmse(tracking.rmse_after),
+            "saturated_end": rounded_rmse(tracking.saturated_end),
+            "last_rmse": rounded_rmse(tracking.last_rmse),
             "hypotheses_tried": tracking.hypotheses_tried,
         }
 
@@ -68,9 +77,12 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
     threshold = 1.0 + config.epsilon
     if not tracking.converged:
         return Judgement(Verdict.LOST, float("nan"), threshold, "no motion hypothesis converged")
-    ratio = tracking.rmse_after / tracking.rmse_before if tracking.rmse_before > 0 else float("inf")
+    ratio = tracking.rmse_end / tracking.rmse_before if tracking.rmse_before > 0 else float("inf")
     if ratio > threshold:
         return Judgement(Verdict.DIVERGED, ratio, threshold, f"RMSE after / before {ratio:.2f} > {threshold:.2f}")
+    if tracking.saturated_end > config.max_saturated_share:
+        return Judgement(Verdict.DIVERGED, ratio, threshold, f"the final pose leaves {tracking.saturated_end:.0%} of "
+                         "the residuals beyond the cutoff: the alignment explains less than half of the image")
     reasons, jump = [], False
     if config.check_when_no_hypothesis_good_enough and not tracking.good_enough:
         reasons.append(f"no motion hypothesis ({tracking.hypotheses_tried} tried) came within the retrack threshold "

@@ -184,8 +184,13 @@ class DirectFrame:
 class DirectTracking:
     """The alignment of one frame against the newest keyframe (FDMO Eq. 2), before anything is decided.
 
-    ``rmse_before`` is the RMSE at the first guess (the motion model's, or the given prior), ``rmse_after`` the
-    one the best hypothesis reached: FDMO's divergence test compares them. ``achieved_rmse`` (per level) is
+    ``rmse_before`` is the RMSE at the first guess (the motion model's, or the given prior), ``rmse_end`` the best
+    hypothesis's at its final pose, measured alike (finest level, the tracker's fixed cutoff: ``CoarseTracker.rmse``):
+    FDMO's divergence test compares them. ``rmse_after`` is what the alignment itself reached on its finest level,
+    where DSO raises the cutoff on a level with too many residuals above it, which makes the same pose's RMSE larger
+    (at half teddy's frame rate, 147 frames judged diverged at RMSE after / before 1.20-1.32 with a Levenberg-Marquardt
+    that accepts only steps that lower the energy). ``saturated_end``: the share of the terms that pose leaves
+    beyond the cutoff. ``achieved_rmse`` (per level) is
     what DSO keeps as lastCoarseRMSE once the frame is accepted; ``last_rmse`` is the previous frame's, and
     ``good_enough`` says whether a hypothesis came within DSO's reTrackThreshold of it (trackNewCoarse stops
     trying guesses there; when none does, every motion hypothesis was worse than the last frame's fit)."""
@@ -193,6 +198,8 @@ class DirectTracking:
     reference: TrackingReference
     result: TrackingResult | None  # the best hypothesis; None when none converged
     rmse_before: float
+    rmse_end: float  # NaN where no hypothesis converged
+    saturated_end: float  # the share of the terms beyond the cutoff at the final pose (1 where none converged)
     achieved_rmse: np.ndarray
     last_rmse: float
     good_enough: bool
@@ -330,12 +337,15 @@ class DirectOdometry:
         )
         last_rmse = float(self.last_rmse[0])
         good_enough = bool(achieved[0] < last_rmse * self.config.tracker.retrack_threshold)
-        motion_px = None
+        motion_px, rmse_end, saturated_end = None, float("nan"), 1.0
         if best is not None:
             T_last_ref = se3_inverse(self.history[-1].T_world_cam) @ reference.T_world_cam
             motion_px = reference.tracker.image_motion_px(T_last_ref, best.T_frame_ref)
+            rmse_end, saturated_end = reference.tracker.fit(frame.pyramid, best.T_frame_ref, best.affine,
+                                                            frame.exposure)
         return DirectTracking(
-            reference, best, prior_rmse, achieved, last_rmse, good_enough, tried, T_world_cam_prior is not None,
+            reference, best, prior_rmse, rmse_end, saturated_end, achieved, last_rmse, good_enough, tried,
+            T_world_cam_prior is not None,
             _ms_since(start), time_ratio if time_ratio is not None and time_ratio > 1.0 else None,
             motion_px, self._typical_motion_px(),
         )
