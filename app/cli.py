@@ -86,6 +86,17 @@ def _two_integers(option: str, text: str, form: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"{option} {text}: expected {form}, two integers") from None
 
 
+def _stride(text: str) -> int:
+    """``K`` of --stride."""
+    try:
+        stride = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--stride {text}: expected a positive integer") from None
+    if stride < 1:
+        raise argparse.ArgumentTypeError(f"--stride {text}: must be 1 or more")
+    return stride
+
+
 def _port(text: str) -> int:
     try:
         port = int(text)
@@ -180,6 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_source_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--stride", type=_stride, default=1, metavar="K",
+                        help="play every K-th frame, at its own timestamp: the camera at 1/K of its frame rate")
     parser.add_argument("--format", dest="layout", choices=LAYOUTS, help="force the dataset layout (default: detected)")
     parser.add_argument("--camera", type=Path, help="camera YAML or DSO camera.txt: replaces the dataset's calibration")
     parser.add_argument("--gt", type=Path, metavar="FILE",
@@ -226,7 +239,8 @@ def _run_command(args: argparse.Namespace) -> int:
                   "ends the run", file=sys.stderr)
             return _run_and_report(args, config, camera, LivePlayer(camera), show_progress=False)
     source = DEFAULT_SEQUENCE if args.source is None else args.source
-    sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt)
+    sequence = open_source(source, config.dataset, args.layout, args.camera, args.start, args.end, args.gt,
+                           args.stride)
     check_method(config, sequence.camera)
     _check_drops_and_jumps(args.drops, args.jumps, sequence.indices)
     if args.realtime:
@@ -245,7 +259,8 @@ def run_config(args: argparse.Namespace) -> Config:
 def _check_live_options(args: argparse.Namespace) -> None:
     """What a live camera cannot do: it has no frames to cut, drop or jump to, no layout and no ground truth, and
     the page's playback controls are for recorded sequences."""
-    given = {"--start": args.start, "--end": args.end, "--drop": args.drops, "--jump": args.jumps,
+    given = {"--start": args.start, "--end": args.end, "--stride": args.stride if args.stride != 1 else None,
+             "--drop": args.drops, "--jump": args.jumps,
              "--format": args.layout, "--gt": args.gt, "--viser": args.viser}
     refused = [option for option, value in given.items() if value not in (None, [], False)]
     if refused:
@@ -387,7 +402,7 @@ def _rerun_sink(path: Path, sequence, own_process: bool):
 
     path.parent.mkdir(parents=True, exist_ok=True)
     return BackgroundSink(RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth,
-                                    recording_name=sequence.name))
+                                    recording_name=_played(sequence)))
 
 
 def _viser_view(sequence, player, host: str, port: int):
@@ -395,16 +410,26 @@ def _viser_view(sequence, player, host: str, port: int):
 
     player.speed = REAL_TIME  # watched live: at the sequence's own frame rate (the page's slider changes it)
     view = ViserView(sequence.camera, player, ground_truth=sequence.ground_truth, host=host, port=port,
-                     wait_for_browser=True)
+                     wait_for_browser=True, title=f"FDMO: {_played(sequence)}")
     print(f"fdmo: live view at {view.url}; playback starts when a browser opens it (Ctrl-C to quit)",
           file=sys.stderr)
     return view
 
 
+def _played(sequence) -> str:
+    return played_name(sequence.name, getattr(sequence, "stride", 1))  # a live camera has no stride
+
+
+def played_name(sequence_name: str, stride: int) -> str:
+    """What was played, as the summary and the viewers name it: the sequence, and its stride where frames were left
+    out."""
+    return sequence_name if stride == 1 else f"{sequence_name} (every {stride} frames)"
+
+
 def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
     initialized = metrics["initialization_frame"]
     lines = [
-        f"{metrics['sequence']} ({metrics['method']}, {metrics['status']}): "
+        f"{played_name(metrics['sequence'], metrics['stride'])} ({metrics['method']}, {metrics['status']}): "
         f"tracked {metrics['tracked_frames']}/{metrics['processed_frames']} frames, "
         f"{'never initialized' if initialized is None else f'initialized at frame {initialized}'}, "
         f"{_counted(metrics['keyframes'], 'keyframe', 'keyframes')}, {metrics['fps'] or 0.0:.1f} fps",
@@ -473,7 +498,7 @@ def command_info(args: argparse.Namespace) -> int:
     from vo_core.config import DatasetConfig
 
     sequence = open_source(args.source, DatasetConfig(), layout=args.layout, camera_file=args.camera,
-                           ground_truth_file=args.gt)
+                           ground_truth_file=args.gt, stride=args.stride)
     description = sequence.describe()
     print(json.dumps(description, indent=2) if args.json else _as_text(description))
     return EXIT_OK

@@ -80,25 +80,28 @@ class RunSummary:
 
 def open_dataset(source: str | Path, dataset: DatasetConfig, layout: str | None = None,
                  camera_file: str | Path | None = None, start: int | None = None, end: int | None = None,
-                 ground_truth_file: str | Path | None = None):
-    """Open a sequence with the dataset settings of the configuration, cut to frames start..end-1."""
+                 ground_truth_file: str | Path | None = None, stride: int = 1):
+    """Open a sequence with the dataset settings of the configuration, cut to frames start..end-1, every
+    ``stride``-th."""
     sequence = open_sequence(
         source, layout=layout, camera_file=camera_file, undistort_output=dataset.undistort_output,
         on_bad_image=dataset.on_bad_image, read_ahead=dataset.read_ahead, ground_truth_file=ground_truth_file,
     )
-    if start is not None or end is not None:
-        sequence = sequence.cut(start, end)
-    return sequence
+    return _cut(sequence, start, end, stride)
+
+
+def _cut(sequence, start: int | None, end: int | None, stride: int):
+    return sequence.cut(start, end, stride) if start is not None or end is not None or stride != 1 else sequence
 
 
 def open_source(source: str | Path, dataset: DatasetConfig, layout: str | None = None,
                 camera_file: str | Path | None = None, start: int | None = None, end: int | None = None,
-                ground_truth_file: str | Path | None = None):
+                ground_truth_file: str | Path | None = None, stride: int = 1):
     """A dataset folder or video as ``open_dataset`` opens it, or ``synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]``: a
     sequence rendered by vo_core.synthetic (seed 0), with its exact ground truth."""
     kind, _, spec = str(source).partition(":")
     if kind != SYNTHETIC:
-        return open_dataset(source, dataset, layout, camera_file, start, end, ground_truth_file)
+        return open_dataset(source, dataset, layout, camera_file, start, end, ground_truth_file, stride)
     if layout or camera_file or ground_truth_file:
         raise InputError(f"{source}: a synthetic sequence has its own layout, camera and ground truth")
     from vo_core.synthetic import DEFAULT_NUM_FRAMES, make_sequence
@@ -111,7 +114,7 @@ def open_source(source: str | Path, dataset: DatasetConfig, layout: str | None =
     except ValueError:
         raise InputError(f"{source}: expected synthetic:PRESET[:FRAMES[:WIDTHxHEIGHT]]") from None
     sequence = make_sequence(preset, num_frames, width=width, height=height)
-    return sequence.cut(start, end) if start is not None or end is not None else sequence
+    return _cut(sequence, start, end, stride)
 
 
 def warm_up(config: Config, camera, num_frames: int = WARM_UP_FRAMES) -> float:
@@ -251,6 +254,7 @@ class _Run:
         metrics = {
             "sequence": self.sequence.name,
             "layout": getattr(self.sequence, "layout", None),
+            "stride": getattr(self.sequence, "stride", 1),
             "method": self.config.method,
             "status": status,
             "frames": len(self.sequence),

@@ -91,6 +91,21 @@ def test_a_cut_sequence_runs_with_its_start_and_end_and_a_task_its_own_options(t
     assert command(matrix.cells()[0], tmp_path)[-2:] == ["--at", "100"]
 
 
+def test_each_stride_of_the_matrix_is_a_sequence_of_its_own_played_with_its_stride(tmp_path):
+    matrix = parse_matrix({"sequences": [SYNTHETIC], "methods": ["fdmo"], "strides": [1, 3]}, "m.yaml")
+    assert [(s.name.endswith(".stride3"), s.stride) for s in matrix.sequences] == [(False, 1), (True, 3)]
+    first, strided = (command(cell, tmp_path) for cell in matrix.cells())
+    assert "--stride" not in first and " --stride 3 " in " ".join(strided) + " "
+    with pytest.raises(InputError, match="m.yaml: strides: expected a stride >= 1"):
+        parse_matrix({"sequences": [SYNTHETIC], "methods": ["fdmo"], "strides": [0]}, "m.yaml")
+
+
+def test_the_real_data_matrix_covers_every_folder_at_three_strides():
+    matrix = load_matrix(REPOSITORY / "configs" / "bench" / "real.yaml")
+    assert {s.stride for s in matrix.sequences} == {1, 2, 3}
+    assert set(matrix.methods) == {"fdmo", "direct", "features"} and len(matrix.seeds) == 3
+
+
 def test_the_bundled_sequence_is_named_by_a_word():
     matrix = load_matrix(REPOSITORY / "configs" / "bench" / "smoke.yaml")
     assert [sequence.source for sequence in matrix.sequences] == [str(DEFAULT_SEQUENCE)]

@@ -135,6 +135,21 @@ def events_of(out: Path) -> list[dict]:
 # ------------------------------------------------------------------------------------------------ run
 
 
+def test_a_stride_plays_every_kth_frame_at_its_own_time_and_says_so(dataset, tmp_path, scripted, capsys):
+    """--stride 3: the camera at a third of its rate; the frames keep their numbers and timestamps, and metrics.json
+    and the summary say what was played."""
+    out = tmp_path / "results"
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--stride", "3")
+    assert code == 0 and "(every 3 frames)" in stdout
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["stride"] == 3 and metrics["frames"] == len(range(0, FRAMES, 3))
+    assert scripted[0][-1].seen == list(range(0, FRAMES, 3))
+    posed = read_trajectory(out / "trajectory.tum").timestamps  # the scripted front end poses from its third frame
+    np.testing.assert_allclose(posed, np.arange(0, FRAMES, 3)[2:] * VAMR_INTERVAL_S, atol=1e-9)
+    code, _, err = run_cli(capsys, "run", dataset, "--out", out, "--stride", "0")
+    assert code == 2 and "--stride 0: must be 1 or more" in err
+
+
 def test_run_writes_the_five_files_and_they_parse_back(dataset, tmp_path, scripted, capsys):
     out = tmp_path / "results"
     code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--set", "seed=3")
@@ -474,7 +489,7 @@ def test_viser_listens_on_this_machine_only_unless_asked(dataset, tmp_path, scri
     class FakeView:
         url = "http://fake"
 
-        def __init__(self, camera, player, ground_truth=None, host="?", port=0, wait_for_browser=False):
+        def __init__(self, camera, player, ground_truth=None, host="?", port=0, wait_for_browser=False, title=""):
             hosts.append(host)
             playback.append((player.speed, wait_for_browser))
             player.stop()  # the page would be the way to quit

@@ -146,8 +146,8 @@ def finished_row(out_dir: Path, cell: Cell, retry_failed: bool) -> dict[str, Any
 
 def describe(matrix: Matrix) -> dict[str, Any]:
     return {
-        "sequences": [{"name": s.name, "path": s.source, "options": list(s.options), "start": s.start, "end": s.end}
-                      for s in matrix.sequences],
+        "sequences": [{"name": s.name, "path": s.source, "options": list(s.options), "start": s.start, "end": s.end,
+                       "stride": s.stride} for s in matrix.sequences],
         "methods": matrix.methods,
         "seeds": matrix.seeds,
         "settings": {name: list(overrides) for name, overrides in matrix.settings.items()},

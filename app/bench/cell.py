@@ -60,11 +60,12 @@ def command(cell: Cell, folder: Path, python: str = sys.executable) -> list[str]
     sequence = cell.sequence
     cut = [*(["--start", str(sequence.start)] if sequence.start is not None else []),
            *(["--end", str(sequence.end)] if sequence.end is not None else [])]
+    stride = ["--stride", str(sequence.stride)] if sequence.stride != 1 else []
     settings = [item for override in (*cell.overrides, f"seed={cell.seed}") for item in ("--set", override)]
     if cell.task.task == "run":
-        head = ["run", sequence.source, "--method", cell.method, "--no-rrd", *cut]
+        head = ["run", sequence.source, "--method", cell.method, "--no-rrd", *cut, *stride]
     else:  # the matrix refuses a start or an end with the experiments
-        head = ["experiment", cell.task.task, sequence.source, "--methods", cell.method]
+        head = ["experiment", cell.task.task, sequence.source, "--methods", cell.method, *stride]
     return [python, "-m", "app", *head, *sequence.options, *settings, "--out", str(folder), "--quiet",
             *cell.task.args]
 

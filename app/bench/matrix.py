@@ -4,6 +4,8 @@
       - ../shared/data/tum_fr3_teddy_first200
       - {path: ../shared/data/kitti00_first100, name: kitti, format: kitti, end: 50}
     methods: [fdmo, direct, klt]
+    strides: [1, 2, 3]             # each sequence also played every 2nd and 3rd frame (--stride), as the sequences
+                                   # NAME.stride2 and NAME.stride3 (default: [1]); a sequence may set its own stride
     seeds: [0, 1, 2]               # config.seed of each cell (default: [0])
     settings:                      # named sets of --set overrides, a cell each (default: one set, no override)
       default: {}
@@ -22,7 +24,7 @@ on a cluster on other machines: there the paths must name the same files).
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +41,7 @@ DEFAULT_TIMEOUT_S = 3600.0
 SOURCE_OPTIONS = {"format": "--format", "camera": "--camera", "gt": "--gt"}  # of fdmo run and fdmo experiment
 PATH_OPTIONS = ("camera", "gt")
 NAME_CHARACTERS = "A-Za-z0-9._-"  # of sequence, setting and task names: they name folders
-KEYS = ("sequences", "methods", "seeds", "settings", "tasks", "timeout_s")
+KEYS = ("sequences", "methods", "strides", "seeds", "settings", "tasks", "timeout_s")
 
 
 @dataclass(frozen=True)
@@ -49,6 +51,7 @@ class SequenceSpec:
     options: tuple[str, ...] = ()  # --format/--camera/--gt of the commands
     start: int | None = None
     end: int | None = None
+    stride: int = 1  # --stride: every stride-th frame is played
 
 
 @dataclass(frozen=True)
@@ -117,6 +120,7 @@ def parse_matrix(document: Any, origin: str) -> Matrix:
             raise InputError(f"{origin}: no '{required}' list")
     sequences = [_sequence(entry, f"{origin}: sequences[{i}]") for i, entry in enumerate(_list(document, "sequences",
                                                                                                 origin))]
+    sequences = _strided(sequences, _strides(_list(document, "strides", origin, [1]), origin))
     tasks = [_task(entry, f"{origin}: tasks[{i}]") for i, entry in enumerate(_list(document, "tasks", origin,
                                                                                      ["run"]))]
     _unique([sequence.name for sequence in sequences], f"{origin}: sequences")
@@ -148,8 +152,8 @@ def _sequence(entry: Any, where: str) -> SequenceSpec:
         entry = {"path": entry}
     if not isinstance(entry, dict) or not isinstance(entry.get("path"), str):
         raise InputError(f"{where}: expected a path, or a mapping with 'path' (and name, format, camera, gt, start, "
-                         "end)")
-    unknown = sorted(set(entry) - {"path", "name", *SOURCE_OPTIONS, "start", "end"})
+                         "end, stride)")
+    unknown = sorted(set(entry) - {"path", "name", *SOURCE_OPTIONS, "start", "end", "stride"})
     if unknown:
         raise InputError(f"{where}: unknown key {unknown[0]!r}")
     source = _source(entry["path"])
@@ -159,9 +163,30 @@ def _sequence(entry: Any, where: str) -> SequenceSpec:
             value = str(entry[key])
             options += [option, str(Path(value).absolute()) if key in PATH_OPTIONS else value]
     start, end = (_frame(entry.get(key), f"{where}: {key}") for key in ("start", "end"))
+    stride = _stride(entry.get("stride", 1), f"{where}: stride")
     name = str(entry.get("name") or _name_of(entry["path"]))
     _check_name(name, where)
-    return SequenceSpec(name, source, tuple(options), start, end)
+    return SequenceSpec(name, source, tuple(options), start, end, stride)
+
+
+def _strides(values: list, origin: str) -> list[int]:
+    strides = [_stride(value, f"{origin}: strides") for value in values]
+    _unique(strides, f"{origin}: strides")
+    return strides
+
+
+def _stride(value: Any, where: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise InputError(f"{where}: expected a stride >= 1 (every how many frames one is played), got {value!r}")
+    return value
+
+
+def _strided(sequences: list[SequenceSpec], strides: list[int]) -> list[SequenceSpec]:
+    """Each sequence at each stride of the matrix, a stride other than 1 named in the sequence's name (NAME.strideK)
+    so that it is a row of the table of its own."""
+    return [sequence if stride == 1 else replace(sequence, name=f"{sequence.name}.stride{sequence.stride * stride}",
+                                                 stride=sequence.stride * stride)
+            for sequence in sequences for stride in strides]
 
 
 def _source(path: str) -> str:

@@ -85,7 +85,8 @@ def set_up(name: str, args: argparse.Namespace, settings: dict[str, Any]) -> Set
     before anything is written), and write them with the experiment's ``settings`` into the results folder."""
     configs = {method: load_config(args.config, [*args.overrides, f"method={method}"]) for method in args.methods}
     first = next(iter(configs.values()))
-    sequence = open_source(args.source, first.dataset, args.layout, args.camera, ground_truth_file=args.gt)
+    sequence = open_source(args.source, first.dataset, args.layout, args.camera, ground_truth_file=args.gt,
+                           stride=args.stride)
     for config in configs.values():
         check_method(config, sequence.camera)
     out_dir = args.out or RESULTS_ROOT / f"{name}_{sequence.name}_{time.strftime('%Y%m%d-%H%M%S')}"
@@ -94,7 +95,8 @@ def set_up(name: str, args: argparse.Namespace, settings: dict[str, Any]) -> Set
     out_dir.mkdir(parents=True, exist_ok=True)
     for method, config in configs.items():
         dump_config(config, out_dir / f"config_{method}.yaml")
-    described = {"experiment": name, "source": args.source, "sequence": sequence.name, "frames": len(sequence),
+    described = {"experiment": name, "source": args.source, "sequence": sequence.name, "stride": args.stride,
+                 "frames": len(sequence),
                  "methods": list(configs), **settings}
     (out_dir / "experiment.yaml").write_text(yaml.safe_dump(described, sort_keys=False))
     return Setup(name, sequence, configs, out_dir, args.quiet)

@@ -168,7 +168,9 @@ class ViserView:
         *,
         refresh_hz: float = REFRESH_HZ,
         wait_for_browser: bool = False,
+        title: str = "FDMO",
     ):
+        self.title = title  # the panel's label: what is played
         self.camera = camera
         self.player = player
         self.ground_truth = GroundTruthOverlay(ground_truth) if ground_truth is not None and len(ground_truth) else None
@@ -285,7 +287,7 @@ class ViserView:
         gui = self.server.gui
         gui.configure_theme(control_width="large", show_share_button=False)
         gui.main_panel.dock_right()
-        gui.set_panel_label("FDMO")
+        gui.set_panel_label(self.title)
         self.status = gui.add_markdown("waiting for the first frame")
         self.image = gui.add_image(np.zeros((self.camera.height, self.camera.width, 3), np.uint8),
                                    label="camera", format="jpeg", jpeg_quality=80)

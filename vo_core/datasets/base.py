@@ -167,7 +167,36 @@ class LoadOptions:
             raise InputError(f"on_bad_image must be one of {', '.join(BAD_IMAGE_POLICIES)}, not '{self.on_bad_image}'")
 
 
-class Sequence:
+class FrameSelection:
+    """The frames a sequence plays, as positions in its recording (``_selection``), and the views ``cut`` and
+    ``reversed`` make of it, for the dataset sequences and the synthetic ones alike."""
+
+    _selection: np.ndarray
+    stride: int = 1  # every stride-th frame of the recording is played: a camera at 1/stride of its rate
+
+    def cut(self, start: int | None = None, end: int | None = None, stride: int = 1):
+        """Frames start..end-1 (positions in this view, Python slice rules), every ``stride``-th."""
+        if stride < 1:
+            raise InputError(f"stride must be a positive integer, not {stride}")
+        selection = self._selection[slice(start, end, stride)]
+        if len(selection) == 0:
+            where = getattr(self, "root", self.name)  # a dataset's folder, a synthetic sequence's name
+            raise InputError(f"{where}: cutting {len(self._selection)} frames to start={start}, end={end} leaves none")
+        view = self._view(selection)
+        view.stride = self.stride * stride
+        return view
+
+    def reversed(self):
+        """The frames in reverse order (timestamps then decrease; frame indices stay the original ones)."""
+        return self._view(self._selection[::-1])
+
+    def _view(self, selection: np.ndarray):
+        view = copy.copy(self)
+        view._selection = selection
+        return view
+
+
+class Sequence(FrameSelection):
     """A dataset sequence: lazily read frames, calibration and ground truth.
 
     ``len``, indexing and iteration see the current view (after ``cut``/``reversed``); ``Frame.index`` stays
@@ -231,24 +260,6 @@ class Sequence:
             f"Sequence({self.name!r}, layout={self.layout!r}, frames={len(self)}, "
             f"camera={self.camera.width}x{self.camera.height}, ground_truth={self.ground_truth is not None})"
         )
-
-    def cut(self, start: int | None = None, end: int | None = None, stride: int = 1) -> "Sequence":
-        """Frames start..end-1 (positions in this view, Python slice rules), every ``stride``-th."""
-        if stride < 1:
-            raise InputError(f"stride must be a positive integer, not {stride}")
-        selection = self._selection[slice(start, end, stride)]
-        if len(selection) == 0:
-            raise InputError(f"{self.root}: cutting {len(self)} frames to start={start}, end={end} leaves none")
-        return self._view(selection)
-
-    def reversed(self) -> "Sequence":
-        """The frames in reverse order (timestamps then decrease; frame indices stay the original ones)."""
-        return self._view(self._selection[::-1])
-
-    def _view(self, selection: np.ndarray) -> "Sequence":
-        view = copy.copy(self)
-        view._selection = selection
-        return view
 
     # ------------------------------------------------------------------------------------------ frames
 

@@ -12,14 +12,13 @@ as a dataset's frame numbers skip the frames that ``fdmo run --drop`` leaves out
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from vo_core.datasets.base import Frame
+from vo_core.datasets.base import Frame, FrameSelection
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera, camera_to_dict
 from vo_core.synthetic.renderer import RenderConfig, Renderer
@@ -56,7 +55,7 @@ def default_camera(width: int = 640, height: int = 480) -> PinholeCamera:
     return PinholeCamera(width, height, focal, focal, (width - 1) / 2, (height - 1) / 2)
 
 
-class SyntheticSequence:
+class SyntheticSequence(FrameSelection):
     """Frames rendered on demand along a trajectory. Views made by ``cut`` and ``reversed`` share the renderer."""
 
     layout = "synthetic"
@@ -105,23 +104,6 @@ class SyntheticSequence:
             f"SyntheticSequence({self.name!r}, frames={len(self)}, "
             f"camera={self.camera.width}x{self.camera.height}, scene={self.renderer.scene.name!r})"
         )
-
-    def cut(self, start: int | None = None, end: int | None = None, stride: int = 1) -> "SyntheticSequence":
-        """Frames start..end-1 (positions in this view, Python slice rules), every ``stride``-th."""
-        if stride < 1:
-            raise InputError(f"stride must be a positive integer, not {stride}")
-        selection = self._selection[slice(start, end, stride)]
-        if len(selection) == 0:
-            raise InputError(f"{self.name}: cutting {len(self)} frames to start={start}, end={end} leaves none")
-        return self._view(selection)
-
-    def reversed(self) -> "SyntheticSequence":
-        return self._view(self._selection[::-1])
-
-    def _view(self, selection: np.ndarray) -> "SyntheticSequence":
-        view = copy.copy(self)
-        view._selection = selection
-        return view
 
     # ------------------------------------------------------------------------------------------ frames
 
