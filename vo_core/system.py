@@ -42,7 +42,7 @@ import numpy as np
 
 from vo_core.config import Config
 from vo_core.direct.divergence import Judgement, Verdict, judge, rounded_rmse
-from vo_core.direct.motion_model import extrapolate
+from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.errors import InputError
 from vo_core.features.config import FeatureConfig

@@ -28,7 +28,7 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from vo_core.direct.motion_model import extrapolate
+from vo_core.geometry.motion_model import extrapolate
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import FeatureKeyframe, FeatureMap
