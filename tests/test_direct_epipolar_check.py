@@ -1,4 +1,4 @@
-"""The start check's independent witness (vo_core/direct/epipolar_check.py): the ORB matches between a start's
+"""The start check's independent witness (vo_core/init/epipolar_check.py): the ORB matches between a start's
 keyframes agree with their true motion, contradict a wrong one with the reason, and say nothing where the views
 are too close to tell. The start stays on probation until the witness answers: beside mapping (live input) when it is
 done, offline at the next window optimization."""
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from vo_core.direct.config import EpipolarCheckConfig, StartCheckConfig
-from vo_core.direct.epipolar_check import EpipolarCheck
 from vo_core.direct.start_check import StartCheck
 from vo_core.direct.window import WindowReport
 from vo_core.geometry.lie import se3, so3_exp
+from vo_core.init.epipolar_check import EpipolarCheck
 from vo_core.synthetic import make_sequence
 
 KEYFRAMES = [0, 8, 16, 24, 32]  # the smooth preset's room under 2-5 deg of parallax from frame 0
@@ -83,7 +83,7 @@ def probation_with_witness(room, poses, beside_mapping=True):
     """A start check taken through its window optimizations (all passing the direct measures) with the room's
     keyframes at ``poses``; returns the check after the last one, its witness started."""
     config = StartCheckConfig(epipolar=EpipolarCheckConfig(beside_mapping=beside_mapping))
-    check = StartCheck(config, KEYFRAMES[0], KEYFRAMES[1], "features")
+    check = StartCheck(config, KEYFRAMES[0], KEYFRAMES[1], "features", epipolar=EpipolarCheck(config.epipolar))
     keyframes = probation_keyframes(room, poses)
     for _ in range(config.window_optimizations + 1):  # the hand-over's own, then the probation's
         assert check.observe(REPORT, keyframes) is None

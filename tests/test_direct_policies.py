@@ -7,7 +7,8 @@ import numpy as np
 from test_direct_support import pose
 from vo_core.direct.config import KeyframeConfig
 from vo_core.direct.keyframe_policy import fraction_in_view, keyframes_to_marginalize, needs_keyframe
-from vo_core.direct.motion_model import extrapolate, motion_hypotheses
+from vo_core.direct.motion_model import motion_hypotheses
+from vo_core.geometry.motion_model import extrapolate
 from vo_core.geometry.lie import se3_inverse
 
 CONFIG = KeyframeConfig()

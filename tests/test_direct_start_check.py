@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from vo_core.config import load_config
-from vo_core.direct.epipolar_check import EpipolarCheck
 from vo_core.direct.initialization import InitializationResult
 from vo_core.direct.pixel_selector import PixelSelector
 from vo_core.events import EventKind
 from vo_core.geometry.lie import se3, se3_inverse
+from vo_core.init.epipolar_check import EpipolarCheck
 from vo_core.init.registry import initializer_factory
 from vo_core.synthetic import make_sequence
 from vo_core.synthetic.trajectories import TrajectoryConfig
@@ -89,12 +89,25 @@ class TwinStart:
                                     details={"model": "H"})
 
 
+class TwinStarts:
+    """The initializer factory of a run with twin starts: the wrong twin first where ``wrong``, the right one after a
+    failed attempt; the configured witness for each start."""
+
+    def __init__(self, sequence, wrong: bool, configured):
+        self.sequence, self.wrong, self.configured = sequence, wrong, configured
+
+    def __call__(self, failed: str | None) -> TwinStart:
+        return TwinStart(self.sequence, wrong=self.wrong and failed is None)
+
+    def start_witness(self):
+        return self.configured.start_witness()
+
+
 def run_with_start(wrong: bool, overrides: tuple[str, ...] = ()):
     sequence = make_sequence("planar", 45, 0, WIDTH, HEIGHT)
     odometry = Odometry(load_config(overrides=["method=direct", *overrides]), sequence.camera)
     direct = odometry.direct
-    direct.make_initializer = lambda failed: TwinStart(sequence, wrong=wrong) if failed is None else TwinStart(
-        sequence, wrong=False)
+    direct.make_initializer = TwinStarts(sequence, wrong, direct.make_initializer)
     direct.initializer = direct.make_initializer(None)
     results = [odometry.track(frame) for frame in sequence]
     odometry.close()

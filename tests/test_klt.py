@@ -14,11 +14,11 @@ from vo_core.errors import InputError
 from vo_core.eval.align import umeyama
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
+from vo_core.front_ends.klt.bootstrap import Bootstrapper
+from vo_core.front_ends.klt.config import KltConfig
+from vo_core.front_ends.klt.pipeline import KltOdometry
+from vo_core.geometry.klt import KltTracker
 from vo_core.geometry.lie import se3_inverse, so3_geodesic_angle
-from vo_core.klt.bootstrap import Bootstrapper
-from vo_core.klt.config import KltConfig
-from vo_core.klt.pipeline import KltOdometry
-from vo_core.klt.tracking import KltTracker
 from vo_core.synthetic import make_sequence
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory

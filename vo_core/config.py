@@ -19,8 +19,8 @@ from vo_core.direct.config import DirectConfig
 from vo_core.direct.divergence import DivergenceConfig
 from vo_core.errors import InputError
 from vo_core.features.config import FeatureConfig
+from vo_core.front_ends.klt.config import KltConfig
 from vo_core.init.config import InitConfig
-from vo_core.klt.config import KltConfig
 
 METHODS = ("fdmo", "direct", "features", "klt")
 

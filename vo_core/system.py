@@ -36,54 +36,21 @@ import threading
 import time
 from dataclasses import dataclass
 from enum import Enum
-from typing import Protocol
 
 import numpy as np
 
 from vo_core.config import Config
 from vo_core.direct.divergence import Judgement, Verdict, judge, rounded_rmse
-from vo_core.direct.motion_model import extrapolate
+from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
-from vo_core.errors import InputError
 from vo_core.features.config import FeatureConfig
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
+from vo_core.front_ends import IMPLEMENTED_METHODS, make_front_end  # noqa: F401 (app reads IMPLEMENTED_METHODS here)
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
 from vo_core.geometry.multiview import image_motion_px, project_world
 from vo_core.init.registry import initializer_factory
 from vo_core.mapping_thread import MappingThread
-
-IMPLEMENTED_METHODS = ("fdmo", "klt", "direct", "features")
-DIRECT_METHODS = ("fdmo", "direct")
-
-
-class FrontEnd(Protocol):
-    """A method that is a whole pipeline of its own. It never talks to sinks: it returns results, events
-    included."""
-
-    def process(self, frame) -> FrameResult: ...
-
-    def map_snapshot(self) -> MapSnapshot: ...
-
-
-def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
-    """The pipeline of a method that runs on its own (the KLT baseline, the feature-based odometry); None for the
-    direct methods, whose per-frame flow is ``Odometry.track``'s. Methods that do not exist yet are refused, never
-    faked."""
-    if config.method == "klt":
-        from vo_core.klt.pipeline import KltOdometry
-
-        return KltOdometry(config.klt, camera, seed=config.seed)
-    if config.method == "features":
-        from vo_core.features.feature_only import FeatureOnlyOdometry
-
-        return FeatureOnlyOdometry(config.features, camera, seed=config.seed)
-    if config.method in DIRECT_METHODS:
-        return None
-    raise InputError(
-        f"method '{config.method}' is not implemented yet (available: {', '.join(IMPLEMENTED_METHODS)})"
-    )
-
 
 def maps_features_in_a_process(config: Config) -> bool:
     """Whether the odometry's feature half maps in a process of its own: FDMO with mapping threads."""

@@ -181,10 +181,10 @@ class WindowConfig:
 
 @dataclass
 class EpipolarCheckConfig:
-    """The start check's independent witness (epipolar_check.py): the essential matrix of ORB matches between the
-    start's keyframes against the direct poses' motion. Measured in BENCHMARKS.md (Starts from many frames): right
-    starts' qualified pairs disagree by at most 1.1 deg and 5.4 deg (KITTI, parking; one flipped pair on teddy), the
-    wrong ones by 4.3-9.4 deg and 22-142 deg on every qualified pair."""
+    """The start check's independent witness (vo_core/init/epipolar_check.py): the essential matrix of ORB matches
+    between the start's keyframes against the direct poses' motion. Measured in BENCHMARKS.md (Starts from many
+    frames): right starts' qualified pairs disagree by at most 1.1 deg and 5.4 deg (KITTI, parking; one flipped pair
+    on teddy), the wrong ones by 4.3-9.4 deg and 22-142 deg on every qualified pair."""
 
     enabled: bool = True
     # ORB-SLAM2's initialization matching: twice the tracking's features (Tracking::MonocularInitialization's

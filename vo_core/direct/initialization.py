@@ -1,6 +1,8 @@
 """What the direct system asks of an initializer, and what an initializer hands it (DSO's CoarseInitializer is the
 model). The direct half defines the contract; the initializers live on either side (DSO's coarse one in
-vo_core/direct/, the feature-based one in vo_core/init/) and the system hands the odometry a factory.
+vo_core/direct/, the feature-based one in vo_core/init/) and the system hands the odometry a factory
+(vo_core/init/registry.py), which also makes the start check's independent witness (vo_core/init/epipolar_check.py:
+it uses the feature half's ORB, which the direct half does not import).
 
 The direct odometry feeds frames until ``track`` returns an ``InitializationResult``; when it has fed
 ``max_frames`` frames without one it starts over from the current frame. ``status`` says, for the events,
@@ -11,13 +13,13 @@ initializer failed, so that ``direct.initializer=auto`` can try the other one.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
 from vo_core.direct.pyramid import ImagePyramid
+from vo_core.geometry.camera import PinholeCamera
 
 
 @dataclass
@@ -48,6 +50,26 @@ class Initializer(Protocol):
     def status(self) -> dict[str, Any]: ...
 
 
-# A fresh initializer for every (re)initialization, given the name of the initializer whose attempt just failed
-# (None when the last one succeeded, or at the first).
-InitializerFactory = Callable[[str | None], Initializer]
+class StartWitness(Protocol):
+    """What the start check (start_check.py) asks of its independent witness (vo_core/init/epipolar_check.py): what
+    the images of a start's keyframes (each with ``frame_index``, ``image``, ``T_world_cam``) say of their poses."""
+
+    def prepare(self, keyframes: list, camera: PinholeCamera) -> None:
+        """Start measuring the keyframes' images, beside mapping."""
+
+    def disagreement(self, keyframes: list, camera: PinholeCamera) -> tuple[str | None, dict]:
+        """Why the keyframes' direct poses contradict their images, or None; and the measures for the event."""
+
+    def close(self) -> None:
+        """Stop measuring."""
+
+
+class InitializerFactory(Protocol):
+    """What the system hands the direct odometry for its starts."""
+
+    def __call__(self, failed: str | None) -> Initializer:
+        """A fresh initializer for every (re)initialization, given the name of the initializer whose attempt just
+        failed (None when the last one succeeded, or at the first)."""
+
+    def start_witness(self) -> StartWitness | None:
+        """A fresh witness for the check of a new start; None where none runs."""

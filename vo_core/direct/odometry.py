@@ -23,7 +23,8 @@ keyframe and an event when it jumps, and a new start stays on probation (start_c
 optimizations: a start that fails is discarded with an event saying why, the frame gets no pose, and the
 initializer starts again from it (with ``direct.initializer=auto`` the other initializer).
 
-The initializer is handed in as a factory: the direct half does not know which one runs.
+The initializer is handed in as a factory: the direct half does not know which one runs; the same factory makes
+the start check's witness (its ORB matches are the feature half's).
 """
 
 from __future__ import annotations
@@ -549,7 +550,8 @@ class DirectOdometry:
         method = self.initializer.name
         self._end_start_check()
         if self.config.start_check.enabled:
-            self.start_check = StartCheck(self.config.start_check, first.frame_index, frame.index, method)
+            self.start_check = StartCheck(self.config.start_check, first.frame_index, frame.index, method,
+                                          epipolar=self.make_initializer.start_witness())
             self.start_check.posed(frame.timestamp)
         self.initializer = self.make_initializer(None)
         self.scale_watch.reset()

@@ -15,12 +15,12 @@ hand-over's own, and is discarded at the first of them where:
   (points whose initial depths were off: half the residuals on a synthetic room with the coarse initializer),
   which the window optimizations then remove.
 * after the last of them: the ORB matches between the window's keyframes contradict the direct poses' motion
-  (epipolar_check.py), the one measure that does not come from the direct map itself. This witness runs on a
-  thread of its own from the last optimization on, and the start stays on probation until it answers: with live
-  input (``EpipolarCheckConfig.beside_mapping``) when it is done, while mapping goes on; otherwise at the next
-  window optimization, waiting for it there if need be, so that a run is the same at any speed (its images'
-  measures run beside the tracking of the frames in between instead of holding up the last optimization's
-  keyframe: 195 ms on teddy's start).
+  (vo_core/init/epipolar_check.py, handed in with the initializers), the one measure that does not come from the
+  direct map itself. This witness runs on a thread of its own from the last optimization on, and the start stays on
+  probation until it answers: with live input (``EpipolarCheckConfig.beside_mapping``) when it is done, while
+  mapping goes on; otherwise at the next window optimization, waiting for it there if need be, so that a run is the
+  same at any speed (its images' measures run beside the tracking of the frames in between instead of holding up the
+  last optimization's keyframe: 195 ms on teddy's start).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_core.direct.config import StartCheckConfig
-from vo_core.direct.epipolar_check import EpipolarCheck
+from vo_core.direct.initialization import StartWitness
 from vo_core.direct.window import WindowReport
 
 
@@ -48,11 +48,7 @@ class StartCheck:
     posed_timestamps: list[float] = field(default_factory=list)  # the frames posed in this start's map so far
     witness: Future | None = None  # the epipolar witness, from the last optimization on: (reason or None, measures)
     witness_due: bool = False  # a window optimization came after the witness started (its answer is due)
-    epipolar: EpipolarCheck | None = field(default=None, init=False, repr=False)  # measures images as they come
-
-    def __post_init__(self):
-        if self.config.epipolar.enabled:
-            self.epipolar = EpipolarCheck(self.config.epipolar)
+    epipolar: StartWitness | None = field(default=None, repr=False)  # measures images as they come; None: no witness
 
     @property
     def passed(self) -> bool:

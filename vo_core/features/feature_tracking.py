@@ -13,7 +13,7 @@ Per frame, while tracking (``FeatureTracker.track``):
                                                                                         Relocalization
 
 ``tracks_few_reference_points`` is NeedNewKeyFrame's tracked-points condition; its timing conditions (local
-mapping idle, a relocalization just before) are the odometry's (feature_only.py), which knows the clock.
+mapping idle, a relocalization just before) are the odometry's (vo_core/front_ends/features.py), which knows the clock.
 
 The pose-only optimization is vo_core/geometry/pose_only.py (ORB-SLAM2 PoseOptimization); its outliers leave the
 frame's matches.
@@ -221,7 +221,7 @@ class FeatureTracker:
     def tracks_few_reference_points(self, feature_map: FeatureMap, frame: TrackedFrame, inliers: int) -> bool:
         """ORB-SLAM2 NeedNewKeyFrame's c2 (monocular): the frame tracks fewer than 90 % of the points its reference
         keyframe has well observed (40 % while the map has one keyframe), with more than 15 inliers. When the
-        keyframe is taken (local mapping idle, no relocalization just before) is feature_only.py's."""
+        keyframe is taken (local mapping idle, no relocalization just before) is vo_core/front_ends/features.py's."""
         tracking = self.tracking
         keyframes = len(feature_map)
         reference = feature_map.keyframes.get(frame.reference_keyframe) or feature_map.newest()

@@ -134,7 +134,7 @@ class PnPConfig:
 
     The defaults are ORB-SLAM2's relocalization (Tracking::Relocalization, PnPsolver::SetRansacParameters(0.99,
     10, 300, 4, 0.5, 5.991)), which FDMO 4.2.2's recovery follows with EPnP (Lepetit et al. 2009). The KLT
-    baseline sets its own (vo_core/klt/config.py: P3P, paper 003 II-B.1)."""
+    baseline sets its own (vo_core/front_ends/klt/config.py: P3P, paper 003 II-B.1)."""
 
     solver: str = "epnp"  # inside RANSAC: "p3p" (Kneip et al. 2011), "epnp" (Lepetit et al. 2009) or "usac" (above)
     ransac_iterations: int = 300  # ORB-SLAM2 relocalization: at most 300 RANSAC iterations

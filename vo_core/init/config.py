@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from vo_core.geometry.klt import CornerConfig, KltTrackerConfig
 from vo_core.geometry.two_view import TwoViewConfig  # the section init.two_view
-from vo_core.klt.config import CornerConfig, KltTrackerConfig
 
 
 @dataclass

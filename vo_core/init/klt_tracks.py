@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from vo_core.geometry.klt import KltTracker, detect_corners
 from vo_core.init.config import FeatureTrackConfig
-from vo_core.klt.tracking import KltTracker, detect_corners
 
 
 class FeatureTracks:

@@ -4,13 +4,19 @@
 own acceptance rules for ``init.max_frames`` frames, or the direct odometry's check after the hand-over): the
 feature initializer starts sooner and right where it passes its checks; where it does not, the coarse one sees
 the scene another way.
+
+The factory the direct odometry gets (``initializer_factory``) also makes the start check's epipolar witness
+(epipolar_check.py), with ``direct.start_check.epipolar``'s settings.
 """
 
 from __future__ import annotations
 
-from vo_core.direct.initialization import Initializer, InitializerFactory
+from dataclasses import dataclass
+
+from vo_core.direct.initialization import Initializer
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera
+from vo_core.init.epipolar_check import EpipolarCheck
 
 INITIALIZERS = ("coarse", "features", "auto")
 
@@ -37,11 +43,28 @@ def make_initializer(direct_config, init_config, camera: PinholeCamera, seed: in
     raise InputError(f"config key 'direct.initializer': {name!r} is not one of {', '.join(INITIALIZERS)}")
 
 
-def initializer_factory(direct_config, init_config, camera: PinholeCamera, seed: int) -> InitializerFactory:
-    """A factory of fresh initializers for the direct odometry; an unknown name is refused now, not at the
-    first frame."""
+@dataclass(frozen=True)
+class Starts:
+    """What the direct odometry gets for its starts (its InitializerFactory, vo_core/direct/initialization.py)."""
+
+    direct_config: object
+    init_config: object
+    camera: PinholeCamera
+    seed: int
+
+    def __call__(self, failed: str | None) -> Initializer:
+        return make_initializer(self.direct_config, self.init_config, self.camera, self.seed, failed)
+
+    def start_witness(self) -> EpipolarCheck | None:
+        config = self.direct_config.start_check.epipolar
+        return EpipolarCheck(config) if config.enabled else None
+
+
+def initializer_factory(direct_config, init_config, camera: PinholeCamera, seed: int) -> Starts:
+    """A factory of fresh initializers (and start witnesses) for the direct odometry; an unknown name is refused
+    now, not at the first frame."""
     make_initializer(direct_config, init_config, camera, seed)
-    return lambda failed: make_initializer(direct_config, init_config, camera, seed, failed)
+    return Starts(direct_config, init_config, camera, seed)
 
 
 def _resolve(configured: str, failed: str | None) -> str:

@@ -11,32 +11,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings
+from vo_core.geometry.klt import CornerConfig, KltTrackerConfig  # the sections klt.corners, klt.tracker
 from vo_core.geometry.multiview import PnPConfig
 from vo_core.geometry.two_view import TwoViewConfig
-
-
-@dataclass
-class CornerConfig:
-    """Corner detection (paper II-A.2, Tables II and III)."""
-
-    max_corners: int = 1000  # Tables II/III: maximum number of keypoints
-    min_distance: float = 11.0  # Tables II/III: non-maximum suppression radius (px)
-    block_size: int = 7  # structure-tensor window; the paper's 15 px patch blurs corners at 320x240
-    quality_level: float = 0.01  # OpenCV's relative cornerness threshold (paper: Harris threshold tuned)
-    use_harris: bool = False  # Shi-Tomasi min-eigenvalue by default; the paper used Harris (II-A.2)
-    harris_k: float = 0.04  # Table II: kappa 0.04 (KITTI, Malaga); Table III: 0.1 (parking)
-    border: int = 8  # corners closer to the image border than this are not tracked well by KLT
-
-
-@dataclass
-class KltTrackerConfig:
-    """Pyramidal Lucas-Kanade (paper II-A.2: a pyramidal point tracker, vision.PointTracker)."""
-
-    window_size: int = 21  # MATLAB PointTracker BlockSize [31 31] scaled to OpenCV's usual 21
-    pyramid_levels: int = 3  # PointTracker NumPyramidLevels = 3
-    max_iterations: int = 30  # PointTracker MaxIterations = 30
-    epsilon: float = 0.01  # PointTracker: stop when the update is below 0.01 px
-    max_forward_backward_error: float = 1.0  # PointTracker MaxBidirectionalError (px); ours 1 px
 
 
 @dataclass

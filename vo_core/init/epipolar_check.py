@@ -1,13 +1,13 @@
 """The start check's independent witness: what ORB matches between the start's keyframes say about their motion.
 
-The start check's other measures (start_check.py) all come from the direct map itself, so a start that is wrong
-in a self-consistent way passes them: DSO's coarse initializer on KITTI played backward from frame 0 hands over a
-first pose 8 deg and 45 deg off that its window optimizations then refine without complaint (inlier ratio 0.70,
-no energy growth, parallax unchanged). Two images say it directly: the essential matrix of their ORB matches
-(five-point RANSAC, cv2.findEssentialMat) gives the relative rotation and translation direction without any of the
-map's depths. For each keyframe of the start's window against its oldest one, where the matches support the
-epipolar geometry well (enough points triangulated in front of both views, seen under enough parallax), the
-direct poses' motion is compared with it.
+The start check's other measures (vo_core/direct/start_check.py) all come from the direct map itself, so a start
+that is wrong in a self-consistent way passes them: DSO's coarse initializer on KITTI played backward from frame 0
+hands over a first pose 8 deg and 45 deg off that its window optimizations then refine without complaint (inlier
+ratio 0.70, no energy growth, parallax unchanged). Two images say it directly: the essential matrix of their ORB
+matches (five-point RANSAC, cv2.findEssentialMat) gives the relative rotation and translation direction without any
+of the map's depths. For each keyframe of the start's window against its oldest one, where the matches support the
+epipolar geometry well (enough points triangulated in front of both views, seen under enough parallax), the direct
+poses' motion is compared with it.
 
 A plane seen from two views has two motions that explain it equally (Faugeras' twofold ambiguity), and the
 essential matrix then picks one at random: a pair whose inliers a homography explains as well (ORB-SLAM's model
@@ -15,6 +15,10 @@ selection, R_H > 0.4, geometry/two_view.py) does not count. One pair can still b
 flipped the translation of one pair of a right teddy start in 3, with 273 points), so the start is refused only
 where several pairs, and most of the qualified ones, disagree. Where too few pairs qualify (too little parallax,
 too few matches, a planar view) the check says nothing.
+
+The witness lives with the initializers, above both halves: it measures with the feature half's ORB extractor and
+matcher, which the direct half does not import. The initializer registry (registry.py) hands a fresh one to the
+direct odometry for each start (``InitializerFactory.start_witness``, vo_core/direct/initialization.py).
 """
 
 from __future__ import annotations

@@ -14,12 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vo_core.front_ends.klt.config import BootstrapConfig, TriangulationConfig
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.klt import CornerConfig, KltTracker, detect_corners
 from vo_core.geometry.multiview import bearing_angles, reprojection_errors
 from vo_core.geometry.two_view import TwoViewFailure, reconstruct
-from vo_core.klt.config import BootstrapConfig, CornerConfig, TriangulationConfig
-from vo_core.klt.tracking import KltTracker, detect_corners
 
 
 @dataclass

@@ -21,14 +21,14 @@ import cv2
 import numpy as np
 
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.front_ends.klt.bootstrap import Bootstrap, Bootstrapper
+from vo_core.front_ends.klt.config import KltConfig
+from vo_core.front_ends.klt.state import Keyframe, Landmarks, Tracks
 from vo_core.geometry.bundle_adjustment import WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.klt import KltTracker, detect_corners
 from vo_core.geometry.lie import se3_exp, se3_inverse, se3_log, transform_points
 from vo_core.geometry.multiview import bearing_angles, estimate_pose, triangulate
-from vo_core.klt.bootstrap import Bootstrap, Bootstrapper
-from vo_core.klt.config import KltConfig
-from vo_core.klt.state import Keyframe, Landmarks, Tracks
-from vo_core.klt.tracking import KltTracker, detect_corners
 
 RECENT_SPEED_FRAMES = 10  # frames whose median translation sets the scale of a re-bootstrap
 

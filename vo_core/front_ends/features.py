@@ -3,19 +3,19 @@ system FDMO is compared with, on the same inputs and with the same outputs).
 
 Per frame:
 
-    not initialized: ORB features into the two-frame start (orb_initializer.py); once it has a map, the map's
-        two keyframes, and local mapping of the second
-    tracking: motion model or reference keyframe, then the local map (feature_tracking.py); where tracking
-        wants a keyframe, the frame becomes one and local mapping runs on it (local_mapping.py) before the next
+    not initialized: ORB features into the two-frame start (features/orb_initializer.py); once it has a map, the
+        map's two keyframes, and local mapping of the second
+    tracking: motion model or reference keyframe, then the local map (features/feature_tracking.py); where tracking
+        wants a keyframe, the frame becomes one and local mapping runs on it (features/local_mapping.py) before the next
         frame: ORB-SLAM2's two threads, one after the other. ORB-SLAM2 takes keyframes only while local mapping
         is idle; here, once the camera time its local mapping would have been busy has passed
     lost: no pose; while the map has at most 5 keyframes it starts over (ORB-SLAM2's reset), at the last pose
         and the old map's scene depth as unit; otherwise every frame tries the global relocalization
 
 The ORB extractor, the vocabulary, the feature map and its covisibility, the matchers, the pose-only
-optimization, the relocalization and the triangulation are the ones FDMO's feature half uses; this method adds the
-state machine and the local mapping with free poses. Like the KLT baseline it is a pipeline of its own: it
-returns results with their events and never talks to sinks (vo_core/system.py does).
+optimization, the relocalization and the triangulation are the ones FDMO's feature half uses (vo_core/features/);
+this front end adds the state machine and the local mapping with free poses. Like the KLT baseline it is a pipeline
+of its own: it returns results with their events and never talks to sinks (vo_core/system.py does).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from vo_core.direct.motion_model import extrapolate
+from vo_core.geometry.motion_model import extrapolate
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import FeatureKeyframe, FeatureMap
