@@ -292,10 +292,17 @@ class _Statistics:
         self.dropped = 0  # on purpose: --drop, the page's button
         self.late = 0  # --realtime: arrived while the odometry was busy
         self.jumps: list[dict[str, Any]] = []
+        self._untracked: set[int] = set()  # frames whose latest processing got no pose
+        self._posed_by_start: set[int] = set()  # of those, the first frames of starts: posed when the start succeeded
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self.processed += 1
         self.tracked += bool(result.tracked)
+        self._posed_by_start.discard(result.frame_index)  # processed again (a backward jump): this time counts
+        if result.tracked:
+            self._untracked.discard(result.frame_index)
+        else:
+            self._untracked.add(result.frame_index)
         if self.initialization_frame is None and result.tracked:
             self.initialization_frame = result.frame_index
         for stage, ms in result.timings_ms.items():
@@ -312,10 +319,25 @@ class _Statistics:
             self.late += int(event.details["count"])
         elif event.kind is EventKind.FRAMES_DROPPED:
             self.dropped += int(event.details["count"])
+        if event.kind is EventKind.INITIALIZATION_SUCCEEDED:
+            self._count_first_frame_posed(event.details)
         if event.kind is EventKind.INITIALIZATION_REJECTED:
             self.tracked -= len(event.details.get("retracted", []))  # their poses were taken back
+            first = event.details.get("first_frame")
+            if first in self._posed_by_start:  # so was the first frame's
+                self._posed_by_start.remove(first)
+                self._untracked.add(first)
+                self.tracked -= 1
         if event.kind is EventKind.FRAMES_JUMPED:
             self.jumps.append({key: event.details[key] for key in ("from_frame", "to_frame")})
+
+    def _count_first_frame_posed(self, details: dict[str, Any]) -> None:
+        """The start's first frame, untracked when it was processed, is tracked now (as frames.csv says)."""
+        first = details.get("first_frame")
+        if details.get("first_T_world_cam") is not None and first in self._untracked:
+            self._untracked.remove(first)
+            self._posed_by_start.add(first)
+            self.tracked += 1
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass
