@@ -11,8 +11,8 @@
     fdmo experiment frame-drop|two-loop|timing SOURCE [--methods fdmo,direct,klt] [--out DIR] ...
     fdmo bench MATRIX.yaml [--workers N] [--ray auto|ADDRESS] [--out DIR] [--retry-failed]
 
-Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
-when the reader of the output went away (``fdmo info X | head``). The viewers and matplotlib are imported only
+Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted by Ctrl-C
+(SIGINT) and 143 by SIGTERM, 141 when the reader of the output went away (``fdmo info X | head``): app/exit_codes.py. The viewers and matplotlib are imported only
 when asked for, so a headless run never loads viser.
 """
 
@@ -31,6 +31,7 @@ from collections.abc import Iterator, Sequence as SequenceOf
 from pathlib import Path
 from typing import Any, NoReturn
 
+from app.exit_codes import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, EXIT_OK, exit_code_of_signal
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from app.process_start import MAPPING_MODES, mapping_mode
@@ -42,10 +43,6 @@ from vo_core.eval import ALIGNMENTS, DEFAULT_MAX_DT_S
 from vo_core.events import EventKind
 from vo_core.features.config import VocabularyConfig
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT
-EXIT_BROKEN_PIPE = 141  # the shell's convention for SIGPIPE, as a tool killed by it reports
 DEFAULT_RESULTS_ROOT = Path("results")
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
@@ -253,24 +250,27 @@ def _check_live_options(args: argparse.Namespace) -> None:
 
 
 def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, show_progress: bool) -> int:
-    from app.pipeline import run_sequence
+    from app.pipeline import INTERRUPTED, run_sequence
 
     out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
+    signals: list[int] = []
     try:
-        summary = _until_signalled(player, lambda: run_sequence(
+        summary = _until_signalled(player, signals, lambda: run_sequence(
             sequence, config, out_dir, sinks, player=player, show_progress=show_progress, keep_alive=args.viser))
     finally:
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
     if summary is not None and not args.quiet:
         print(_summary_text(summary.metrics, out_dir))
-    if summary is None or player.interrupted:
-        # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
-        print(f"fdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
-        return EXIT_OK if args.viser else EXIT_INTERRUPTED
+    if summary is None or summary.status == INTERRUPTED:
+        # Cut short (the files are still valid): the exit code says so, as metrics.json does.
+        print(f"fdmo: interrupted; results in {out_dir}", file=sys.stderr)
+        return exit_code_of_signal(signals[0]) if signals else EXIT_INTERRUPTED
+    if signals:  # --viser: the sequence was over and the page up; Ctrl-C is the way to quit
+        print(f"fdmo: stopped; results in {out_dir}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -323,16 +323,18 @@ def _check_drops_and_jumps(drops: list[tuple[int, int]], jumps: list[tuple[int, 
 
 
 @contextlib.contextmanager
-def _signals_end_the_run(player) -> Iterator[None]:
+def _signals_end_the_run(player, signals: list[int]) -> Iterator[None]:
     """Ctrl-C (SIGINT) and SIGTERM (a timeout, a job scheduler) end the run between two frames: the frame being
-    tracked finishes, then the result files. The handler only tells the player; raising KeyboardInterrupt instead
-    would often land inside a compiled kernel, where numba turns it into a SystemError. A second signal stops at
-    once (a frame can take long: the first run compiles the kernels)."""
+    tracked finishes, then the result files. The handler only tells the player (and appends the signal's number to
+    ``signals``, for the exit code); raising KeyboardInterrupt instead would often land inside a compiled kernel,
+    where numba turns it into a SystemError. A second signal stops at once (a frame can take long: the first run
+    compiles the kernels)."""
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may set signal handlers
         return
 
     def handle(signum, frame):
+        signals.append(signum)
         if player.interrupted:
             raise KeyboardInterrupt
         player.interrupt()
@@ -345,11 +347,11 @@ def _signals_end_the_run(player) -> Iterator[None]:
             signal.signal(number, handler)
 
 
-def _until_signalled(player, run):
+def _until_signalled(player, signals: list[int], run):
     """``run()``'s summary, or None when a second signal stopped the run mid-frame (its files are finished all
-    the same: the pipeline writes them in a ``finally``)."""
+    the same: the pipeline writes them in a ``finally``); the signals received are appended to ``signals``."""
     try:
-        with _signals_end_the_run(player):
+        with _signals_end_the_run(player, signals):
             return run()
     except (KeyboardInterrupt, SystemError) as error:
         # Raised inside a numba kernel, a KeyboardInterrupt surfaces as a SystemError caused by it.

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -177,6 +178,20 @@ def test_ctrl_c_keeps_the_finished_cells(tmp_path):
     assert bench(matrix, tmp_path / "out", one_cell_then_ctrl_c, quiet=True) == 130
     assert [row["seed"] for row in _rows(tmp_path / "out")] == ["0"]
     assert list(_cell_files(tmp_path / "out")) == [matrix.cells()[0].key]
+
+
+def test_sigterm_keeps_the_finished_cells_and_exits_143(tmp_path):
+    from app.bench import _interrupt
+
+    matrix = load_matrix(_write(tmp_path / "m.yaml", f"sequences: ['{SYNTHETIC}']\nmethods: [klt]\n"
+                                                      "seeds: [0, 1]\n"))
+
+    def one_cell_then_sigterm(jobs):
+        yield from run_in_pool(jobs[:1], 1)
+        _interrupt(signal.SIGTERM, None)  # what command_bench's SIGTERM handler does
+
+    assert bench(matrix, tmp_path / "out", one_cell_then_sigterm, quiet=True) == 143
+    assert [row["seed"] for row in _rows(tmp_path / "out")] == ["0"]
 
 
 def test_ray_without_ray_installed_is_a_one_line_error(tmp_path, monkeypatch, capsys):
