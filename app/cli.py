@@ -53,10 +53,15 @@ RECORDING_ALLOCATOR = {"MIMALLOC_PURGE_DELAY": "0", "MIMALLOC_ARENA_EAGER_COMMIT
 
 
 class _OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line on stderr and exit code 2 (the CLI contract)."""
+    """argparse, but a usage error is one line on stderr and exit code 2 (the CLI contract), with one prefix
+    (``fdmo: error: ``, main's): where an option's own check names the option (``--drop 10: ...``), argparse's
+    ``argument --drop: `` before it goes."""
 
     def error(self, message: str) -> NoReturn:
-        raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
+        option, separator, rest = message.removeprefix("argument ").partition(": ")
+        if message.startswith("argument ") and separator and rest.startswith(f"{option.split('/')[-1]} "):
+            message = rest
+        raise InputError(f"{message} (see {self.prog} --help)")
 
 
 def _drop(text: str) -> tuple[int, int]:
