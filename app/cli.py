@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from app.exit_codes import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, EXIT_OK, exit_code_of_signal
+from app.kernel_build import watch_kernel_builds
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from app.process_start import MAPPING_MODES, mapping_mode
@@ -44,6 +45,7 @@ from vo_core.events import EventKind
 from vo_core.features.config import VocabularyConfig
 
 DEFAULT_RESULTS_ROOT = Path("results")
+MIN_BUILD_REPORTED_S = 1.0  # a kernel built in less (a new signature) is not worth a summary line
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
@@ -214,6 +216,7 @@ def _run_command(args: argparse.Namespace) -> int:
     from app.pipeline import check_method, open_source
     from app.player import Player
 
+    watch_kernel_builds(announce=None if args.quiet else _announce_kernel_build)
     device = None if args.source is None else live_device(args.source)
     if device is not None:
         _check_live_options(args)
@@ -235,6 +238,16 @@ def _run_command(args: argparse.Namespace) -> int:
         _warm_up(config, sequence.camera, args.quiet)
     player = Player(sequence, args.drops, args.jumps, realtime=args.realtime)
     return _run_and_report(args, config, sequence, player, show_progress=not args.quiet)
+
+
+def _announce_kernel_build() -> None:
+    """Said once, when the process starts building compiled kernels (the first run on this machine): otherwise the
+    first frames seem to hang for a minute or more."""
+    from vo_core.kernel_cache import CACHE_VARIABLE
+
+    clear = "\r\033[K" if sys.stderr.isatty() else ""  # the progress bar's line
+    print(f"{clear}fdmo: building the compiled kernels, once for this installation (a minute or two; cached in "
+          f"{os.environ[CACHE_VARIABLE]}: later runs start at once)", file=sys.stderr, flush=True)
 
 
 def run_config(args: argparse.Namespace) -> Config:
@@ -419,6 +432,9 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
     incidents = _incidents(metrics)
     if incidents:
         lines.append("  " + ", ".join(incidents))
+    if metrics.get("kernel_build_s", 0.0) >= MIN_BUILD_REPORTED_S:
+        lines.append(f"  the compiled kernels were built in {metrics['kernel_build_s']:.0f} s, once (not counted in "
+                     "the fps)")
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))

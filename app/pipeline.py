@@ -20,6 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from app.kernel_build import kernel_build_seconds, watch_kernel_builds
 from app.player import REALTIME_SOURCE, Player
 from app.progress import ProgressBar
 from app.sinks.files import FilesSink
@@ -174,6 +175,7 @@ def run_sequence(
     first frame, rewrites the files and restarts the sinks that show a pass (``Restartable``).
     Returns the summary of the last pass.
     """
+    watch_kernel_builds()  # the frame rates leave out the time spent building compiled kernels
     if player is None:
         player = Player(sequence, drops, jumps)
     elif drops or jumps:
@@ -218,14 +220,15 @@ class _Run:
         """One pass from the first frame; the files are finished whatever ends it."""
         self.files.begin(self.config)
         status = INTERRUPTED
-        started, started_playing = time.perf_counter(), player.playing_time()
+        started, started_playing, built = time.perf_counter(), player.playing_time(), kernel_build_seconds()
         try:
             self._play(player)
             status = (COMPLETED if player.finished else RESTARTED if player.restart_requested
                       else INTERRUPTED if player.interrupted else STOPPED)
         finally:
             self.odometry.flush()  # a mapping thread maps what it was given: its events count, its maps are written
-            summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing)
+            summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing,
+                                   kernel_build_seconds() - built)
         return summary
 
     def _play(self, player: Player) -> None:
@@ -240,9 +243,10 @@ class _Run:
             self.odometry.track(frame)
             self.statistics.step_ms.append(1000.0 * (time.perf_counter() - started))
 
-    def _finish(self, status: str, wall_s: float, playing_s: float) -> RunSummary:
-        """metrics.json and the files of the end of a pass. ``playing_s`` is the wall time less the pauses: the
-        frame rate is taken over it, as the progress bar and the viser page take theirs."""
+    def _finish(self, status: str, wall_s: float, playing_s: float, kernel_build_s: float) -> RunSummary:
+        """metrics.json and the files of the end of a pass. ``playing_s`` is the wall time less the pauses and the
+        kernel builds (``kernel_build_s``, the first run's): the frame rate is taken over it, as the progress bar
+        and the viser page take theirs."""
         snapshot = self.odometry.map_snapshot()
         estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_keyframes(snapshot.keyframe_poses)
@@ -258,6 +262,7 @@ class _Run:
             "posed_frames": len(estimate),
             "wall_s": wall_s,
             "playing_s": playing_s,
+            "kernel_build_s": kernel_build_s,
             "fps": self.statistics.processed / playing_s if playing_s > 0 else None,
             "timing_ms": self.statistics.timing_ms(),
             "evaluation": _evaluate(estimate, getattr(self.sequence, "ground_truth", None)),
