@@ -101,11 +101,11 @@ def test_a_new_pass_starts_the_files_afresh(sink):
 def test_frames_csv_has_a_line_per_frame_with_the_tracking_residuals(sink):
     sink.on_frame(None, FrameResult(0, 10.0, None, False))
     sink.on_frame(None, FrameResult(1, 10.5, pose(1), True, True, rmse_before=12.5, rmse_after=7.25,
-                                    num_inliers=812))
+                                    num_inliers=812, divergence_threshold=1.1))
     table = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
     assert table.dtype.names == ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after",
-                                 "num_inliers")
-    np.testing.assert_array_equal(table[1].tolist(), [1, 10.5, 1, 1, 12.5, 7.25, 812])
+                                 "num_inliers", "divergence_threshold")
+    np.testing.assert_array_equal(table[1].tolist(), [1, 10.5, 1, 1, 12.5, 7.25, 812, 1.1])
     assert table[0].tolist()[:4] == (0, 10.0, 0, 0) and np.isnan(table[0].tolist()[4:]).all()  # empty: no value
 
 

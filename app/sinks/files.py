@@ -43,7 +43,8 @@ FEATURE_MAP_FILE = "map_features.ply"
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"  # the header vo_core.trajectory.write_trajectory writes
 PLY_PROPERTIES = (("x", "<f4", "float"), ("y", "<f4", "float"), ("z", "<f4", "float"),
                   ("red", "u1", "uchar"), ("green", "u1", "uchar"), ("blue", "u1", "uchar"))  # name, numpy, PLY
-FRAMES_COLUMNS = ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after", "num_inliers")
+FRAMES_COLUMNS = ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after", "num_inliers",
+                  "divergence_threshold")
 
 
 class FilesSink:
@@ -236,7 +237,7 @@ class PoseLines:
 def frames_line(result: FrameResult) -> str:
     """The frames.csv line of a frame: flags as 1/0, and an empty field where a method has no value."""
     values = (result.frame_index, f"{result.timestamp:.9f}", int(result.tracked), int(result.is_keyframe),
-              result.rmse_before, result.rmse_after, result.num_inliers)
+              result.rmse_before, result.rmse_after, result.num_inliers, result.divergence_threshold)
     return ",".join("" if value is None else f"{value:.9g}" if isinstance(value, float) else str(value)
                     for value in values)
 
