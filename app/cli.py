@@ -282,7 +282,8 @@ def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, 
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
     if summary is not None and not args.quiet:
-        print(_summary_text(summary.metrics, out_dir))
+        recording = None if args.no_rrd else args.rrd or out_dir / DEFAULT_RECORDING
+        print(_summary_text(summary.metrics, out_dir, recording))
     if summary is None or summary.status == INTERRUPTED:
         # Cut short (the files are still valid): the exit code says so, as metrics.json does.
         print(f"fdmo: interrupted; results in {out_dir}", file=sys.stderr)
@@ -421,7 +422,7 @@ def _viser_view(sequence, player, host: str, port: int):
     return view
 
 
-def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
+def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None = None) -> str:
     initialized = metrics["initialization_frame"]
     lines = [
         f"{metrics['sequence']} ({metrics['method']}, {metrics['status']}): "
@@ -439,7 +440,14 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
     lines.append(f"  results in {out_dir}")
+    if recording is not None and not _has_display():
+        # `rerun FILE` opens a window: without a display it fails (winit's EventLoopError).
+        lines.append(f"  no display here: rerun --serve-web {recording} shows the recording in a browser")
     return "\n".join(lines)
+
+
+def _has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def _incidents(metrics: dict[str, Any]) -> list[str]:

@@ -357,6 +357,20 @@ def test_the_summary_names_what_befell_the_run(dataset, tmp_path, scripted, caps
     assert "ATE rmse" in stdout and f"results in {tmp_path / 'r'}" in stdout
 
 
+@pytest.mark.parametrize("display", [None, ":0"])
+def test_without_a_display_the_summary_says_how_to_open_the_recording_in_a_browser(dataset, tmp_path, scripted,
+                                                                                   capsys, monkeypatch, display):
+    """`rerun FILE` fails without a display (winit's EventLoopError); `rerun --serve-web FILE` does not."""
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if display is None:
+        monkeypatch.delenv("DISPLAY", raising=False)
+    else:
+        monkeypatch.setenv("DISPLAY", display)
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r")
+    hint = f"no display here: rerun --serve-web {tmp_path / 'r' / 'recording.rrd'} shows the recording in a browser"
+    assert code == 0 and (hint in stdout) == (display is None)
+
+
 def test_the_summary_says_never_initialized_and_names_nothing_that_did_not_happen(dataset, tmp_path, scripted,
                                                                                   capsys):
     code, stdout, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--end", "2")
