@@ -11,8 +11,8 @@
     fdmo experiment frame-drop|two-loop|timing SOURCE [--methods fdmo,direct,klt] [--out DIR] ...
     fdmo bench MATRIX.yaml [--workers N] [--ray auto|ADDRESS] [--out DIR] [--retry-failed]
 
-Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted, 141
-when the reader of the output went away (``fdmo info X | head``). The viewers and matplotlib are imported only
+Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted by Ctrl-C
+(SIGINT) and 143 by SIGTERM, 141 when the reader of the output went away (``fdmo info X | head``): app/exit_codes.py. The viewers and matplotlib are imported only
 when asked for, so a headless run never loads viser.
 """
 
@@ -31,6 +31,8 @@ from collections.abc import Iterator, Sequence as SequenceOf
 from pathlib import Path
 from typing import Any, NoReturn
 
+from app.exit_codes import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, EXIT_OK, exit_code_of_signal
+from app.kernel_build import watch_kernel_builds
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from app.process_start import MAPPING_MODES, mapping_mode
@@ -42,11 +44,8 @@ from vo_core.eval import ALIGNMENTS, DEFAULT_MAX_DT_S
 from vo_core.events import EventKind
 from vo_core.features.config import VocabularyConfig
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130  # the shell's convention for SIGINT
-EXIT_BROKEN_PIPE = 141  # the shell's convention for SIGPIPE, as a tool killed by it reports
 DEFAULT_RESULTS_ROOT = Path("results")
+MIN_BUILD_REPORTED_S = 1.0  # a kernel built in less (a new signature) is not worth a summary line
 DEFAULT_RECORDING = "recording.rrd"
 DEFAULT_VISER_HOST = "127.0.0.1"  # this machine only: the page controls the run
 DEFAULT_VISER_PORT = 8080
@@ -56,10 +55,15 @@ RECORDING_ALLOCATOR = {"MIMALLOC_PURGE_DELAY": "0", "MIMALLOC_ARENA_EAGER_COMMIT
 
 
 class _OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line on stderr and exit code 2 (the CLI contract)."""
+    """argparse, but a usage error is one line on stderr and exit code 2 (the CLI contract), with one prefix
+    (``fdmo: error: ``, main's): where an option's own check names the option (``--drop 10: ...``), argparse's
+    ``argument --drop: `` before it goes."""
 
     def error(self, message: str) -> NoReturn:
-        raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
+        option, separator, rest = message.removeprefix("argument ").partition(": ")
+        if message.startswith("argument ") and separator and rest.startswith(f"{option.split('/')[-1]} "):
+            message = rest
+        raise InputError(f"{message} (see {self.prog} --help)")
 
 
 def _drop(text: str) -> tuple[int, int]:
@@ -225,6 +229,7 @@ def _run_command(args: argparse.Namespace) -> int:
     from app.pipeline import check_method, open_source
     from app.player import Player
 
+    watch_kernel_builds(announce=None if args.quiet else _announce_kernel_build)
     device = None if args.source is None else live_device(args.source)
     if device is not None:
         _check_live_options(args)
@@ -249,6 +254,16 @@ def _run_command(args: argparse.Namespace) -> int:
     return _run_and_report(args, config, sequence, player, show_progress=not args.quiet)
 
 
+def _announce_kernel_build() -> None:
+    """Said once, when the process starts building compiled kernels (the first run on this machine): otherwise the
+    first frames seem to hang for a minute or more."""
+    from vo_core.kernel_cache import CACHE_VARIABLE
+
+    clear = "\r\033[K" if sys.stderr.isatty() else ""  # the progress bar's line
+    print(f"{clear}fdmo: building the compiled kernels, once for this installation (a minute or two; cached in "
+          f"{os.environ[CACHE_VARIABLE]}: later runs start at once)", file=sys.stderr, flush=True)
+
+
 def run_config(args: argparse.Namespace) -> Config:
     """The configuration of ``fdmo run``: the file's (or the defaults), then what the options change, then the user's
     own --set, then --method."""
@@ -268,24 +283,28 @@ def _check_live_options(args: argparse.Namespace) -> None:
 
 
 def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, show_progress: bool) -> int:
-    from app.pipeline import run_sequence
+    from app.pipeline import INTERRUPTED, run_sequence
 
     out_dir = args.out or _default_out_dir(sequence.name)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     sinks = _sinks(args, sequence, player, out_dir)  # run_sequence closes them
+    signals: list[int] = []
     try:
-        summary = _until_signalled(player, lambda: run_sequence(
+        summary = _until_signalled(player, signals, lambda: run_sequence(
             sequence, config, out_dir, sinks, player=player, show_progress=show_progress, keep_alive=args.viser))
     finally:
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
     if summary is not None and not args.quiet:
-        print(_summary_text(summary.metrics, out_dir))
-    if summary is None or player.interrupted:
-        # With --viser, Ctrl-C is the way to quit; otherwise the run was cut short (the files are still valid).
-        print(f"fdmo: {'stopped' if args.viser else 'interrupted'}; results in {out_dir}", file=sys.stderr)
-        return EXIT_OK if args.viser else EXIT_INTERRUPTED
+        recording = None if args.no_rrd else args.rrd or out_dir / DEFAULT_RECORDING
+        print(_summary_text(summary.metrics, out_dir, recording))
+    if summary is None or summary.status == INTERRUPTED:
+        # Cut short (the files are still valid): the exit code says so, as metrics.json does.
+        print(f"fdmo: interrupted; results in {out_dir}", file=sys.stderr)
+        return exit_code_of_signal(signals[0]) if signals else EXIT_INTERRUPTED
+    if signals:  # --viser: the sequence was over and the page up; Ctrl-C is the way to quit
+        print(f"fdmo: stopped; results in {out_dir}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -338,16 +357,18 @@ def _check_drops_and_jumps(drops: list[tuple[int, int]], jumps: list[tuple[int, 
 
 
 @contextlib.contextmanager
-def _signals_end_the_run(player) -> Iterator[None]:
+def _signals_end_the_run(player, signals: list[int]) -> Iterator[None]:
     """Ctrl-C (SIGINT) and SIGTERM (a timeout, a job scheduler) end the run between two frames: the frame being
-    tracked finishes, then the result files. The handler only tells the player; raising KeyboardInterrupt instead
-    would often land inside a compiled kernel, where numba turns it into a SystemError. A second signal stops at
-    once (a frame can take long: the first run compiles the kernels)."""
+    tracked finishes, then the result files. The handler only tells the player (and appends the signal's number to
+    ``signals``, for the exit code); raising KeyboardInterrupt instead would often land inside a compiled kernel,
+    where numba turns it into a SystemError. A second signal stops at once (a frame can take long: the first run
+    compiles the kernels)."""
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may set signal handlers
         return
 
     def handle(signum, frame):
+        signals.append(signum)
         if player.interrupted:
             raise KeyboardInterrupt
         player.interrupt()
@@ -360,11 +381,11 @@ def _signals_end_the_run(player) -> Iterator[None]:
             signal.signal(number, handler)
 
 
-def _until_signalled(player, run):
+def _until_signalled(player, signals: list[int], run):
     """``run()``'s summary, or None when a second signal stopped the run mid-frame (its files are finished all
-    the same: the pipeline writes them in a ``finally``)."""
+    the same: the pipeline writes them in a ``finally``); the signals received are appended to ``signals``."""
     try:
-        with _signals_end_the_run(player):
+        with _signals_end_the_run(player, signals):
             return run()
     except (KeyboardInterrupt, SystemError) as error:
         # Raised inside a numba kernel, a KeyboardInterrupt surfaces as a SystemError caused by it.
@@ -426,7 +447,7 @@ def played_name(sequence_name: str, stride: int) -> str:
     return sequence_name if stride == 1 else f"{sequence_name} (every {stride} frames)"
 
 
-def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
+def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None = None) -> str:
     initialized = metrics["initialization_frame"]
     lines = [
         f"{played_name(metrics['sequence'], metrics['stride'])} ({metrics['method']}, {metrics['status']}): "
@@ -437,11 +458,21 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path) -> str:
     incidents = _incidents(metrics)
     if incidents:
         lines.append("  " + ", ".join(incidents))
+    if metrics.get("kernel_build_s", 0.0) >= MIN_BUILD_REPORTED_S:
+        lines.append(f"  the compiled kernels were built in {metrics['kernel_build_s']:.0f} s, once (not counted in "
+                     "the fps)")
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
     lines.append(f"  results in {out_dir}")
+    if recording is not None and not _has_display():
+        # `rerun FILE` opens a window: without a display it fails (winit's EventLoopError).
+        lines.append(f"  no display here: rerun --serve-web {recording} shows the recording in a browser")
     return "\n".join(lines)
+
+
+def _has_display() -> bool:
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def _incidents(metrics: dict[str, Any]) -> list[str]:

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.kernel_build import playing_clock
 from app.player import REALTIME_SOURCE, PlaybackState
 from vo_core.datasets.base import Frame, rectification, to_gray_u8
 from vo_core.datasets.calibration import load_camera_file
@@ -140,13 +141,13 @@ class LivePlayer(PlaybackState):
         return False
 
     def playing_time(self) -> float:
-        return 0.0 if self._started is None else time.monotonic() - self._started
+        return 0.0 if self._started is None else playing_clock() - self._started
 
     def stop(self) -> None:
         self._stopped = True
 
     def play(self, on_event: Callable[[Event], None] | None = None) -> Iterator[Frame]:
-        self._started = time.monotonic()
+        self._started = playing_clock()
         last = -1
         while not self._stopped:
             frame = self.camera.newest_after(last, FIRST_FRAME_TIMEOUT_S if last < 0 else FRAME_TIMEOUT_S)

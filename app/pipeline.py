@@ -20,6 +20,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from app.kernel_build import kernel_build_seconds, watch_kernel_builds
 from app.player import REALTIME_SOURCE, Player
 from app.progress import ProgressBar
 from app.sinks.files import FilesSink
@@ -177,6 +178,7 @@ def run_sequence(
     first frame, rewrites the files and restarts the sinks that show a pass (``Restartable``).
     Returns the summary of the last pass.
     """
+    watch_kernel_builds()  # the frame rates leave out the time spent building compiled kernels
     if player is None:
         player = Player(sequence, drops, jumps)
     elif drops or jumps:
@@ -221,14 +223,15 @@ class _Run:
         """One pass from the first frame; the files are finished whatever ends it."""
         self.files.begin(self.config)
         status = INTERRUPTED
-        started, started_playing = time.perf_counter(), player.playing_time()
+        started, started_playing, built = time.perf_counter(), player.playing_time(), kernel_build_seconds()
         try:
             self._play(player)
             status = (COMPLETED if player.finished else RESTARTED if player.restart_requested
                       else INTERRUPTED if player.interrupted else STOPPED)
         finally:
             self.odometry.flush()  # a mapping thread maps what it was given: its events count, its maps are written
-            summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing)
+            summary = self._finish(status, time.perf_counter() - started, player.playing_time() - started_playing,
+                                   kernel_build_seconds() - built)
         return summary
 
     def _play(self, player: Player) -> None:
@@ -243,9 +246,10 @@ class _Run:
             self.odometry.track(frame)
             self.statistics.step_ms.append(1000.0 * (time.perf_counter() - started))
 
-    def _finish(self, status: str, wall_s: float, playing_s: float) -> RunSummary:
-        """metrics.json and the files of the end of a pass. ``playing_s`` is the wall time less the pauses: the
-        frame rate is taken over it, as the progress bar and the viser page take theirs."""
+    def _finish(self, status: str, wall_s: float, playing_s: float, kernel_build_s: float) -> RunSummary:
+        """metrics.json and the files of the end of a pass. ``playing_s`` is the wall time less the pauses and the
+        kernel builds (``kernel_build_s``, the first run's): the frame rate is taken over it, as the progress bar
+        and the viser page take theirs."""
         snapshot = self.odometry.map_snapshot()
         estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_keyframes(snapshot.keyframe_poses)
@@ -262,6 +266,7 @@ class _Run:
             "posed_frames": len(estimate),
             "wall_s": wall_s,
             "playing_s": playing_s,
+            "kernel_build_s": kernel_build_s,
             "fps": self.statistics.processed / playing_s if playing_s > 0 else None,
             "timing_ms": self.statistics.timing_ms(),
             "evaluation": _evaluate(estimate, getattr(self.sequence, "ground_truth", None)),
@@ -296,10 +301,17 @@ class _Statistics:
         self.dropped = 0  # on purpose: --drop, the page's button
         self.late = 0  # --realtime: arrived while the odometry was busy
         self.jumps: list[dict[str, Any]] = []
+        self._untracked: set[int] = set()  # frames whose latest processing got no pose
+        self._posed_by_start: set[int] = set()  # of those, the first frames of starts: posed when the start succeeded
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self.processed += 1
         self.tracked += bool(result.tracked)
+        self._posed_by_start.discard(result.frame_index)  # processed again (a backward jump): this time counts
+        if result.tracked:
+            self._untracked.discard(result.frame_index)
+        else:
+            self._untracked.add(result.frame_index)
         if self.initialization_frame is None and result.tracked:
             self.initialization_frame = result.frame_index
         for stage, ms in result.timings_ms.items():
@@ -316,10 +328,25 @@ class _Statistics:
             self.late += int(event.details["count"])
         elif event.kind is EventKind.FRAMES_DROPPED:
             self.dropped += int(event.details["count"])
+        if event.kind is EventKind.INITIALIZATION_SUCCEEDED:
+            self._count_first_frame_posed(event.details)
         if event.kind is EventKind.INITIALIZATION_REJECTED:
             self.tracked -= len(event.details.get("retracted", []))  # their poses were taken back
+            first = event.details.get("first_frame")
+            if first in self._posed_by_start:  # so was the first frame's
+                self._posed_by_start.remove(first)
+                self._untracked.add(first)
+                self.tracked -= 1
         if event.kind is EventKind.FRAMES_JUMPED:
             self.jumps.append({key: event.details[key] for key in ("from_frame", "to_frame")})
+
+    def _count_first_frame_posed(self, details: dict[str, Any]) -> None:
+        """The start's first frame, untracked when it was processed, is tracked now (as frames.csv says)."""
+        first = details.get("first_frame")
+        if details.get("first_T_world_cam") is not None and first in self._untracked:
+            self._untracked.remove(first)
+            self._posed_by_start.add(first)
+            self.tracked += 1
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         pass

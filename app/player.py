@@ -33,6 +33,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from app.kernel_build import playing_clock
 from vo_core.events import Event, EventKind
 
 # Waits wake at least this often so that Ctrl-C (KeyboardInterrupt) is handled promptly in the main thread.
@@ -138,10 +139,11 @@ class Player(PlaybackState):
         self._update(_speed=value)
 
     def playing_time(self) -> float:
-        """Seconds spent playing since the player was made: inside ``play()`` and not paused. Frame rates are
-        taken over this clock, so that a pause, or the wait for a browser, does not lower them."""
+        """Seconds spent playing since the player was made: inside ``play()``, not paused and not building compiled
+        kernels (app/kernel_build.py). Frame rates are taken over this clock, so that a pause, the wait for a
+        browser, or the first run's kernel builds do not lower them."""
         since = self._playing_since
-        return self._played_s + (0.0 if since is None else time.monotonic() - since)
+        return self._played_s + (0.0 if since is None else playing_clock() - since)
 
     def pause(self) -> None:
         with self._condition:
@@ -211,11 +213,11 @@ class Player(PlaybackState):
 
     def _start_the_clock(self) -> None:
         if self._in_pass and not self._paused and self._playing_since is None:
-            self._playing_since = time.monotonic()
+            self._playing_since = playing_clock()
 
     def _stop_the_clock(self) -> None:
         if self._playing_since is not None:
-            self._played_s += time.monotonic() - self._playing_since
+            self._played_s += playing_clock() - self._playing_since
             self._playing_since = None
 
     # ------------------------------------------------------------------------------------ playback

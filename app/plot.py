@@ -3,8 +3,9 @@
 The top and side views of the estimate against ground truth after alignment (Umeyama, Sim(3) by default, fitted on
 the poses matched by timestamp, as ``fdmo eval`` does), the estimate colored by its position error; that error over
 time; and the ratio RMSE_after / RMSE_before of the direct alignment (FDMO's divergence test: above 1 the alignment
-made the residual worse) where frames.csv has it. Tracking failures, divergences, recoveries and reinitializations
-are marked on the time axes. Without ground truth the views show the estimate alone.
+made the residual worse) against the divergence test's threshold 1 + epsilon, where frames.csv has them. Tracking
+failures, divergences, recoveries, reinitializations, drops and jumps are marked on the time axes, each kind in a
+lane of its own. Without ground truth the views show the estimate alone.
 
 The top view is the plane of the two axes along which the ground truth extends most (the ground, for most
 datasets) unless ``plane`` names one (KITTI's camera world is y-down: its ground plane is xz); the side view shows
@@ -29,14 +30,19 @@ AXES = "xyz"
 PLANES = ("xy", "xz", "yz")
 DEFAULT_PLOT_FILE = "plot.png"
 DPI = 110
-# Events marked on the time axes, with matplotlib's colors.
+# Events marked on the time axes: matplotlib's color and marker. Each kind has a lane of its own (a height in the
+# panel), so that the events of one frame (a divergence and its recovery) stay apart.
 MARKED_EVENTS = {
-    EventKind.TRACKING_FAILED.value: "C3",
-    EventKind.DIVERGENCE_DETECTED.value: "C1",
-    EventKind.RECOVERY_SUCCEEDED.value: "C2",
-    EventKind.RECOVERY_FAILED.value: "C4",
-    EventKind.REINITIALIZATION.value: "C5",
+    EventKind.TRACKING_FAILED.value: ("C3", "x"),
+    EventKind.DIVERGENCE_DETECTED.value: ("C1", "v"),
+    EventKind.RECOVERY_SUCCEEDED.value: ("C2", "^"),
+    EventKind.RECOVERY_FAILED.value: ("C4", "X"),
+    EventKind.REINITIALIZATION.value: ("C5", "s"),
+    EventKind.FRAMES_DROPPED.value: ("C7", ">"),  # the player's: --drop, the page's button
+    EventKind.FRAMES_JUMPED.value: ("C9", "D"),  # --jump, the page's jump back
 }
+TOP_LANE, LANE_STEP = 0.96, 0.06  # the lanes' heights, as fractions of the panel's height
+THRESHOLD_LABEL = "divergence threshold 1 + epsilon"
 
 
 @dataclass
@@ -119,7 +125,7 @@ def draw(run: Run, errors: Errors | None, plane: str | None, title: str):
     if ratio is not None:
         times, values = ratio
         panels["ratio"].plot(times - start, values, "C0.", ms=3)
-        panels["ratio"].axhline(1.0, color="k", lw=0.8, ls="--")
+        draw_threshold(panels["ratio"], run.frames, start)
         panels["ratio"].set(ylabel="RMSE after / before", title="direct alignment: residual ratio")
     for name in below:
         panels[name].set_xlabel("time since the first pose [s]")
@@ -182,15 +188,31 @@ def rmse_ratio(frames: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | Non
     return (frames["timestamp"][valid], after[valid] / before[valid]) if valid.any() else None
 
 
+def draw_threshold(panel, frames: np.ndarray, start: float) -> None:
+    """The divergence test's threshold (frames.csv's divergence_threshold, 1 + epsilon), as a dashed line over the
+    frames that have one; none in results written before frames.csv had the column."""
+    if "divergence_threshold" not in (frames.dtype.names or ()):
+        return
+    known = np.isfinite(frames["divergence_threshold"])
+    if known.any():
+        panel.plot(frames["timestamp"][known] - start, frames["divergence_threshold"][known], "k--", lw=0.8,
+                   drawstyle="steps-post", label=THRESHOLD_LABEL)
+
+
 def mark_events(panel, events: list[dict], start: float) -> None:
-    """A vertical line at each marked event, a legend entry per kind that occurred."""
-    labelled = set()
+    """A thin vertical line at each marked event and a marker in its kind's lane; a legend entry per kind that
+    occurred."""
+    times: dict[str, list[float]] = {}
     for event in events:
-        color = MARKED_EVENTS.get(event["kind"])
-        if color is None:
+        if event["kind"] in MARKED_EVENTS:
+            times.setdefault(event["kind"], []).append(event["timestamp"] - start)
+    for lane, (kind, (color, marker)) in enumerate(MARKED_EVENTS.items()):
+        if kind not in times:
             continue
-        label = None if event["kind"] in labelled else event["kind"].replace("_", " ")
-        labelled.add(event["kind"])
-        panel.axvline(event["timestamp"] - start, color=color, lw=0.8, alpha=0.7, label=label)
-    if labelled:
-        panel.legend(loc="best", fontsize="small")
+        for at in times[kind]:
+            panel.axvline(at, color=color, lw=0.6, alpha=0.4)
+        # x in data, y in the panel's fraction: the lanes stay put whatever the data's range.
+        panel.plot(times[kind], [TOP_LANE - lane * LANE_STEP] * len(times[kind]), ls="none", marker=marker,
+                   color=color, ms=6, transform=panel.get_xaxis_transform(), label=kind.replace("_", " "))
+    if panel.get_legend_handles_labels()[1]:  # the events', and the threshold's
+        panel.legend(loc="lower left", fontsize="small")

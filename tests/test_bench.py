@@ -3,10 +3,17 @@ resume, Ctrl-C, and the smoke matrix on the bundled sequence."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -194,6 +201,20 @@ def test_ctrl_c_keeps_the_finished_cells(tmp_path):
     assert list(_cell_files(tmp_path / "out")) == [matrix.cells()[0].key]
 
 
+def test_sigterm_keeps_the_finished_cells_and_exits_143(tmp_path):
+    from app.bench import _interrupt
+
+    matrix = load_matrix(_write(tmp_path / "m.yaml", f"sequences: ['{SYNTHETIC}']\nmethods: [klt]\n"
+                                                      "seeds: [0, 1]\n"))
+
+    def one_cell_then_sigterm(jobs):
+        yield from run_in_pool(jobs[:1], 1)
+        _interrupt(signal.SIGTERM, None)  # what command_bench's SIGTERM handler does
+
+    assert bench(matrix, tmp_path / "out", one_cell_then_sigterm, quiet=True) == 143
+    assert [row["seed"] for row in _rows(tmp_path / "out")] == ["0"]
+
+
 def test_ray_without_ray_installed_is_a_one_line_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     monkeypatch.setenv("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "1")  # restored after the test
@@ -227,14 +248,117 @@ def test_a_local_ray_instance_gives_the_table_of_the_pool(pool_bench, tmp_path, 
     assert comparable(_rows(tmp_path / "ray")) == comparable(_rows(pool_dir))
 
 
-def test_the_smoke_matrix_runs_on_the_bundled_sequence(tmp_path):
+SMOKE_MATRIX = REPOSITORY / "configs" / "bench" / "smoke.yaml"
+NODE_KEY = "ray_node"  # what run_cell_noting_its_node adds to a row; taken off before the bench sees it
+
+
+@pytest.fixture(scope="module")
+def smoke_pool(tmp_path_factory) -> Path:
+    """configs/bench/smoke.yaml run by ``fdmo bench`` on a pool of 2: its results folder."""
+    out_dir = tmp_path_factory.mktemp("smoke")
+    assert main(["bench", str(SMOKE_MATRIX), "--workers", "2", "--out", str(out_dir), "--quiet"]) == 0
+    return out_dir
+
+
+def test_the_smoke_matrix_runs_on_the_bundled_sequence(smoke_pool):
     """configs/bench/smoke.yaml: fdmo and direct, 2 seeds each, on the 80 bundled teddy frames."""
-    matrix = load_matrix(REPOSITORY / "configs" / "bench" / "smoke.yaml")
-    assert main(["bench", str(REPOSITORY / "configs" / "bench" / "smoke.yaml"), "--workers", "2",
-                 "--out", str(tmp_path), "--quiet"]) == 0
-    rows = _rows(tmp_path)
+    matrix = load_matrix(SMOKE_MATRIX)
+    rows = _rows(smoke_pool)
     assert [(row["method"], row["seed"]) for row in rows] == [(cell.method, str(cell.seed)) for cell in matrix.cells()]
     for row in rows:
         assert row["status"] == OK, row["error"]
         assert float(row["ate_m"]) < 0.02 and float(row["tracked_fraction"]) > 0.9
         assert json.loads((Path(row["folder"]) / "metrics.json").read_text())["method"] == row["method"]
+
+
+def run_cell_noting_its_node(job):
+    """app.bench.cell.run_cell, and the Ray node that ran it (sent to the nodes by value, see below)."""
+    import ray
+
+    from app.bench.cell import run_cell
+
+    return {**run_cell(job), NODE_KEY: ray.get_runtime_context().get_node_id()}
+
+
+def test_the_smoke_matrix_on_a_two_node_ray_cluster_spreads_its_cells_and_gives_the_pools_table(
+        smoke_pool, tmp_path, monkeypatch):
+    """``fdmo bench --ray ADDRESS`` against a real cluster: a head and a second node started by ``ray start`` on this
+    machine (one CPU each, their own temporary folders), as README says for several machines."""
+    if importlib.util.find_spec("ray") is None:
+        pytest.skip("Ray is an optional extra (pip install -e '.[cluster]'); CI installs it")
+    import ray
+    from app.bench import executors
+
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the nodes cannot import this test module
+    monkeypatch.setattr(executors, "run_cell", run_cell_noting_its_node)
+    nodes = []
+
+    def on_the_cluster(jobs):
+        for row in executors.run_on_ray(jobs, address, 2):
+            nodes.append(row.pop(NODE_KEY))
+            yield row
+
+    with two_node_cluster() as address:
+        code = bench(load_matrix(SMOKE_MATRIX), tmp_path / "out", on_the_cluster, quiet=True)
+    assert code == 0 and len(nodes) == 4 and len(set(nodes)) == 2  # every cell ran, on both nodes
+
+    def comparable(rows):
+        return [{key: value for key, value in row.items() if key not in PLACE_DEPENDENT} for row in rows]
+
+    assert comparable(_rows(tmp_path / "out")) == comparable(_rows(smoke_pool))
+
+
+@contextlib.contextmanager
+def two_node_cluster():
+    """``ray start --head`` on 127.0.0.1 and a second ``ray start --address``, each with a CPU and a temporary
+    folder of its own (short: Ray's sockets live there, and a socket's path has at most 107 characters); yields the
+    head's address. At the end their processes (those whose command line names one of the two folders, and their
+    children) are stopped, and the folders removed: ``ray stop`` would stop every Ray on the machine."""
+    ray_command = Path(sys.executable).parent / "ray"
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(REPOSITORY), os.environ.get("PYTHONPATH")]))}
+    common = ["--node-ip-address", "127.0.0.1", "--num-cpus", "1", "--disable-usage-stats",
+              "--object-store-memory", str(100 * 2**20)]
+    folders = [Path(tempfile.mkdtemp(prefix=f"fdmo-ray-{role}-")) for role in ("head", "second")]
+    try:
+        for folder, role in zip(folders, (["--head", "--port", str(port), "--include-dashboard", "false"],
+                                          ["--address", f"127.0.0.1:{port}"])):
+            started = subprocess.run([str(ray_command), "start", *role, *common, "--temp-dir", str(folder)], env=env,
+                                     capture_output=True, text=True, timeout=120)
+            assert started.returncode == 0, started.stderr[-2000:]
+        yield f"127.0.0.1:{port}"
+    finally:
+        _stop_processes_naming(folders)
+        for folder in folders:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _stop_processes_naming(folders: list[Path]) -> None:
+    import psutil
+
+    names = [str(folder) for folder in folders]
+    ours = [process for process in psutil.process_iter(["cmdline"])
+            if any(name in argument for argument in process.info["cmdline"] or () for name in names)]
+    family = {member.pid: member for process in ours for member in _with_children(process)}
+    for member in family.values():
+        with contextlib.suppress(psutil.NoSuchProcess):
+            member.terminate()
+    _, alive = psutil.wait_procs(list(family.values()), timeout=15)
+    for member in alive:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            member.kill()
+
+
+def _with_children(process):
+    import psutil
+
+    try:
+        return [process, *process.children(recursive=True)]
+    except psutil.NoSuchProcess:
+        return []

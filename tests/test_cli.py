@@ -6,6 +6,7 @@ test the app, fast); a few run the real command in a subprocess, with a real met
 
 from __future__ import annotations
 
+import contextlib
 import importlib.metadata
 import io
 import json
@@ -371,6 +372,20 @@ def test_the_summary_names_what_befell_the_run(dataset, tmp_path, scripted, caps
     assert "ATE rmse" in stdout and f"results in {tmp_path / 'r'}" in stdout
 
 
+@pytest.mark.parametrize("display", [None, ":0"])
+def test_without_a_display_the_summary_says_how_to_open_the_recording_in_a_browser(dataset, tmp_path, scripted,
+                                                                                   capsys, monkeypatch, display):
+    """`rerun FILE` fails without a display (winit's EventLoopError); `rerun --serve-web FILE` does not."""
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if display is None:
+        monkeypatch.delenv("DISPLAY", raising=False)
+    else:
+        monkeypatch.setenv("DISPLAY", display)
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r")
+    hint = f"no display here: rerun --serve-web {tmp_path / 'r' / 'recording.rrd'} shows the recording in a browser"
+    assert code == 0 and (hint in stdout) == (display is None)
+
+
 def test_the_summary_says_never_initialized_and_names_nothing_that_did_not_happen(dataset, tmp_path, scripted,
                                                                                   capsys):
     code, stdout, _ = run_cli(capsys, "run", dataset, "--out", tmp_path / "r", "--no-rrd", "--end", "2")
@@ -390,12 +405,12 @@ def test_keyframes_are_counted_by_their_events(dataset, tmp_path, scripted, caps
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_ends_the_run_after_the_current_frame_with_a_summary_and_130(dataset, tmp_path, scripted, capsys,
-                                                                              signum):
+def test_a_signal_ends_the_run_after_the_current_frame_with_a_summary_and_128_plus_its_number(
+        dataset, tmp_path, scripted, capsys, signum):
     scripted[1]["at_frame"] = {6: lambda: os.kill(os.getpid(), signum)}
     out = tmp_path / "results"
     code, stdout, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd")
-    assert code == 130 and stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
+    assert code == {signal.SIGINT: 130, signal.SIGTERM: 143}[signum] and stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
     assert scripted[0][-1].seen == list(range(7))  # frame 6, during which the signal came, was finished
     assert "(fdmo, interrupted): tracked 5/7 frames" in stdout
     metrics = json.loads((out / "metrics.json").read_text())
@@ -667,7 +682,7 @@ def test_bad_input_in_a_subprocess_is_one_line_and_no_traceback(tmp_path):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_during_the_compiled_kernels_finishes_the_files_and_exits_130(tmp_path, signum):
+def test_a_signal_during_the_compiled_kernels_finishes_the_files_and_exits_128_plus_its_number(tmp_path, signum):
     """The real direct method on the bundled sequence, signalled once it tracks (most of its time is then spent in
     numba kernels, where a KeyboardInterrupt used to surface as a SystemError and exit 1)."""
     out = tmp_path / "results"
@@ -677,12 +692,67 @@ def test_a_signal_during_the_compiled_kernels_finishes_the_files_and_exits_130(t
     assert wait_until(lambda: poses.is_file() and len(poses.read_text().splitlines()) > 6, timeout_s=240)
     process.send_signal(signum)
     _, stderr = process.communicate(timeout=120)
-    assert process.returncode == 130, stderr
+    assert process.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[signum], stderr
     assert stderr.strip().splitlines() == [f"fdmo: interrupted; results in {out}"]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["status"] == "interrupted" and metrics["processed_frames"] < 80
     assert len((out / "frames.csv").read_text().splitlines()) == 1 + metrics["processed_frames"]
     assert len(read_trajectory(poses)) == metrics["posed_frames"]
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_a_viser_run_exits_as_interrupted_as_metrics_json_says(tmp_path, signum):
+    """Issue 47: Ctrl-C on a --viser run exited 0 ("fdmo: stopped") while metrics.json said interrupted. A client
+    that sends the page's first camera message stands in for the browser that starts playback."""
+    out, port = tmp_path / "results", free_port()
+    process = subprocess.Popen([sys.executable, "-m", "app", "run", "--viser", "--port", str(port), "--out", str(out),
+                                "--no-rrd", "--quiet"], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                               text=True)
+    try:
+        assert "live view at" in process.stderr.readline()
+        with viser_client(port):
+            frames = out / "frames.csv"
+            assert wait_until(lambda: frames.is_file() and len(frames.read_text().splitlines()) > 3, timeout_s=120)
+            process.send_signal(signum)
+            _, stderr = process.communicate(timeout=120)
+    finally:
+        process.kill()
+    assert process.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[signum], stderr
+    assert stderr.strip().splitlines()[-1] == f"fdmo: interrupted; results in {out}"
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "interrupted" and metrics["processed_frames"] < metrics["frames"]
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@contextlib.contextmanager
+def viser_client(port: int):
+    """A websocket client of the viser page that reports a camera (viser counts a client as connected from its
+    first camera message) and reads whatever the page sends, as a browser would."""
+    import msgspec
+    import viser
+    from viser._messages import ViewerCameraMessage
+    from websockets.sync.client import connect
+
+    camera = ViewerCameraMessage(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.0, 0.0, -1.0), fov=1.0, near=0.01, far=100.0,
+                                 image_height=480, image_width=640, look_at=(0.0, 0.0, 0.0),
+                                 up_direction=(0.0, -1.0, 0.0))
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"]) as client:
+        client.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+        threading.Thread(target=_read_until_closed, args=(client,), daemon=True).start()
+        yield client
+
+
+def _read_until_closed(client) -> None:
+    with contextlib.suppress(Exception):  # closed: the run ended
+        while True:
+            client.recv()
 
 
 def test_a_calibration_for_another_resolution_exits_2_naming_both_sizes(dataset, tmp_path):

@@ -98,7 +98,7 @@ def test_timestamps_out_of_order_or_duplicated_are_refused(tmp_path, swap, word)
     else:
         entries[first], entries[second] = entries[second], entries[first]
     (root / "rgb.txt").write_text("\n".join(header + entries) + "\n")
-    with pytest.raises(InputError, match=rf"rgb\.txt: timestamp .* is {word}"):
+    with pytest.raises(InputError, match=rf"rgb\.txt:{len(header) + first + 2}: timestamp .* is {word}"):
         open_sequence(root)
 
 

@@ -101,11 +101,11 @@ def test_a_new_pass_starts_the_files_afresh(sink):
 def test_frames_csv_has_a_line_per_frame_with_the_tracking_residuals(sink):
     sink.on_frame(None, FrameResult(0, 10.0, None, False))
     sink.on_frame(None, FrameResult(1, 10.5, pose(1), True, True, rmse_before=12.5, rmse_after=7.25,
-                                    num_inliers=812))
+                                    num_inliers=812, divergence_threshold=1.1))
     table = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
     assert table.dtype.names == ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after",
-                                 "num_inliers")
-    np.testing.assert_array_equal(table[1].tolist(), [1, 10.5, 1, 1, 12.5, 7.25, 812])
+                                 "num_inliers", "divergence_threshold")
+    np.testing.assert_array_equal(table[1].tolist(), [1, 10.5, 1, 1, 12.5, 7.25, 812, 1.1])
     assert table[0].tolist()[:4] == (0, 10.0, 0, 0) and np.isnan(table[0].tolist()[4:]).all()  # empty: no value
 
 
@@ -180,3 +180,70 @@ def test_the_run_statistics_do_not_count_retracted_poses_as_tracked():
                               {"reason": "test", "retracted": [result(i).timestamp for i in (1, 2, 3)]}))
     counts = statistics.counts()
     assert counts["tracked_frames"] == 2 and counts["tracked_fraction"] == pytest.approx(2 / 6)
+
+
+def started(sink: FilesSink, first: int = 0, succeeded_at: int = 3) -> None:
+    """Frames ``first``..``succeeded_at``-1 untracked, then a start that succeeds at ``succeeded_at`` and poses
+    ``first`` as its first keyframe (as the direct initializer reports it)."""
+    for i in range(first, succeeded_at):
+        sink.on_frame(None, result(i, tracked=False))
+    sink.on_event(Event(EventKind.INITIALIZATION_SUCCEEDED, succeeded_at, result(succeeded_at).timestamp,
+                        {"first_frame": first, "first_T_world_cam": pose(first).tolist()}))
+    sink.on_frame(None, result(succeeded_at, keyframe=True))
+
+
+def test_the_first_keyframe_of_a_start_is_tracked_in_every_file_once_the_start_succeeds(sink):
+    """Issue 47: frame 0 was in keyframes.tum but untracked in frames.csv and absent from trajectory.tum."""
+    started(sink)
+    frames = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
+    assert frames["tracked"].tolist() == [1, 0, 0, 1] and frames["is_keyframe"].tolist() == [1, 0, 0, 1]
+    for name in (TRAJECTORY_FILE, KEYFRAMES_FILE):
+        written = read_trajectory(sink.out_dir / name)
+        assert written.timestamps.tolist() == pytest.approx([result(0).timestamp, result(3).timestamp])
+        assert np.allclose(written.poses[0], pose(0), atol=1e-6)
+    assert sink.estimate().timestamps.tolist() == pytest.approx([result(0).timestamp, result(3).timestamp])
+
+
+def test_a_rejected_start_takes_back_its_first_keyframe_too(sink):
+    started(sink)
+    sink.on_event(Event(EventKind.INITIALIZATION_REJECTED, 4, result(4).timestamp,
+                        {"reason": "test", "first_frame": 0, "retracted": [result(3).timestamp]}))
+    frames = np.genfromtxt(sink.out_dir / FRAMES_FILE, delimiter=",", names=True)
+    assert frames["tracked"].tolist() == [0, 0, 0, 0] and frames["is_keyframe"].tolist() == [0, 0, 0, 0]
+    for name in (TRAJECTORY_FILE, KEYFRAMES_FILE):
+        assert (sink.out_dir / name).read_text().splitlines()[1:] == []  # the header alone
+
+
+def test_the_run_statistics_count_the_first_keyframe_as_tracked_until_its_start_is_rejected():
+    from app.pipeline import _Statistics
+
+    statistics = _Statistics()
+    for i in range(3):
+        statistics.on_frame(None, result(i, tracked=False))
+    statistics.on_event(Event(EventKind.INITIALIZATION_SUCCEEDED, 3, result(3).timestamp,
+                              {"first_frame": 0, "first_T_world_cam": pose(0).tolist()}))
+    statistics.on_frame(None, result(3))
+    assert statistics.counts()["tracked_frames"] == 2
+    statistics.on_event(Event(EventKind.INITIALIZATION_REJECTED, 4, result(4).timestamp,
+                              {"reason": "test", "first_frame": 0, "retracted": [result(3).timestamp]}))
+    assert statistics.counts()["tracked_frames"] == 0
+
+
+@pytest.mark.parametrize("method", ["fdmo", "klt"])
+def test_every_file_of_the_bundled_run_agrees_on_the_keyframes(tmp_path, method):
+    """Every keyframe of keyframes.tum is in trajectory.tum and tracked and a keyframe in frames.csv, and the
+    summary counts as many keyframes as keyframes.tum has lines."""
+    from app.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", "--out", str(out), "--no-rrd", "--quiet", "--method", method]) == 0
+    keyframes = read_trajectory(out / KEYFRAMES_FILE).timestamps
+    trajectory = read_trajectory(out / TRAJECTORY_FILE).timestamps
+    frames = np.genfromtxt(out / FRAMES_FILE, delimiter=",", names=True)
+    metrics = json.loads((out / METRICS_FILE).read_text())
+    assert len(keyframes) > 2 and np.isin(keyframes, trajectory).all()
+    at_keyframes = np.isin(np.round(frames["timestamp"], 6), np.round(keyframes, 6))
+    assert at_keyframes.sum() == len(keyframes)
+    assert (frames["tracked"][at_keyframes] == 1).all() and (frames["is_keyframe"][at_keyframes] == 1).all()
+    assert metrics["keyframes"] == len(keyframes)
+    assert metrics["tracked_frames"] == frames["tracked"].sum() == len(trajectory) == metrics["posed_frames"]

@@ -3,6 +3,7 @@ outside the repository, ``fdmo run`` with no argument finds its sequence as a cl
 
 from __future__ import annotations
 
+import os
 import shutil
 import site
 import subprocess
@@ -15,6 +16,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "app", "vo_core")
+FDMO_ENTRIES = ("fdmo", "__editable__", "vo_core", "app")  # an installed fdmo's entries in a site-packages
 
 
 @pytest.fixture(scope="module")
@@ -58,3 +60,79 @@ def test_the_installed_wheel_opens_the_bundled_sequence_outside_the_repository(w
     assert opened.returncode == 0, opened.stderr
     location, frames = opened.stdout.split()
     assert location.startswith(str(environment)) and frames == "80"
+
+
+def test_the_quick_start_run_as_written_leaves_an_editable_install_working(tmp_path):
+    """README's quick start in one environment: ``pip install . && fdmo run``, then ``pip install -e .``, then
+    fdmo again (issue 47: the first run's kernels, compiled into site-packages/vo_core/*/__pycache__, outlived the
+    uninstall and hid the editable install: No module named 'vo_core.geometry.lie'). The cheapest faithful version:
+    the dependencies come from this environment (``--no-deps``; a fresh install of them takes minutes), the rest is
+    as written. About 1.5 minutes: the first run compiles every kernel for the installed copy's sources."""
+    python, site_packages = _environment_with_our_dependencies(tmp_path)
+    fdmo = python.parent / "fdmo"
+    work = tmp_path / "work"
+    work.mkdir()
+    env = _without_our_settings(os.environ)
+    first_cache = tmp_path / "cache"
+
+    _pip(python, "install", "--no-deps", str(_copy_of_the_sources(tmp_path / "source")), env=env)
+    first_run = subprocess.run([str(fdmo), "run", "--no-rrd"], cwd=work, env={**env, "XDG_CACHE_HOME": str(first_cache)},
+                               capture_output=True, text=True, timeout=600)
+    assert first_run.returncode == 0, first_run.stderr
+    assert list((first_cache / "fdmo" / "numba").rglob("*.nbi")), "the kernels were not cached in the user cache"
+    assert not list((site_packages / "vo_core").rglob("*.nb[ic]")), "kernels were cached inside the package"
+
+    _pip(python, "install", "--no-deps", "-e", str(REPO), env=env)
+    assert not (site_packages / "vo_core").exists(), "the uninstalled copy left folders behind"
+    imported = subprocess.run([str(python), "-c", "import vo_core, vo_core.geometry.lie; print(vo_core.__file__)"],
+                              cwd=work, env=env, capture_output=True, text=True, timeout=120)
+    assert imported.returncode == 0, imported.stderr
+    assert Path(imported.stdout.strip()) == REPO / "vo_core" / "__init__.py"
+    second_run = subprocess.run([str(fdmo), "run", "--no-rrd", "--quiet"], cwd=work, env=env, capture_output=True,
+                                text=True, timeout=600)
+    assert second_run.returncode == 0, second_run.stderr
+
+
+def _environment_with_our_dependencies(root: Path) -> tuple[Path, Path]:
+    """A fresh venv that also sees this environment's packages but not its fdmo: a folder of links to everything
+    in this environment's site-packages except fdmo's own entries, listed in a .pth (seeing fdmo's dist-info, pip
+    takes this environment's fdmo for the installed one and leaves the venv's copy in place). Returns the venv's
+    python and its site-packages."""
+    venv.create(root / "venv", with_pip=True)
+    python = root / "venv" / "bin" / "python"
+    own = Path(subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], check=True,
+                              capture_output=True, text=True).stdout.strip())
+    dependencies = root / "dependencies"
+    dependencies.mkdir()
+    for site_packages in map(Path, site.getsitepackages()):
+        for entry in site_packages.iterdir():
+            if not entry.name.startswith(FDMO_ENTRIES) and not (dependencies / entry.name).exists():
+                (dependencies / entry.name).symlink_to(entry)
+    (own / "dependencies_here.pth").write_text(f"{dependencies}\n")
+    return python, own
+
+
+def _copy_of_the_sources(root: Path) -> Path:
+    """What ``pip install .`` builds from, copied (an in-tree build would leave build/ in the checkout)."""
+    root.mkdir()
+    for name in SOURCES:
+        if (REPO / name).is_dir():
+            shutil.copytree(REPO / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy2(REPO / name, root / name)
+    return root
+
+
+def _without_our_settings(environment) -> dict[str, str]:
+    """The environment less what points Python or numba elsewhere (a PYTHONPATH to a checkout would also show pip
+    that checkout's fdmo.egg-info as the installed fdmo)."""
+    return {name: value for name, value in environment.items()
+            if name not in ("PYTHONPATH", "NUMBA_CACHE_DIR", "XDG_CACHE_HOME")}
+
+
+def _pip(python: Path, *arguments: str, env: dict[str, str]) -> None:
+    done = subprocess.run([str(python), "-m", "pip", *arguments, "-q"], env=env, capture_output=True, text=True,
+                          timeout=600)
+    if done.returncode != 0 and "satisfies the requirement setuptools" in done.stderr:
+        pytest.skip("the build backend (setuptools) cannot be fetched here")
+    assert done.returncode == 0, done.stderr

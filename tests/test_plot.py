@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from app.plot import view_axes
+from app.plot import THRESHOLD_LABEL, draw, read_run, view_axes
 from app.sinks.files import FilesSink
 from vo_core.config import load_config
 from vo_core.events import Event, EventKind, FrameResult
@@ -26,8 +26,11 @@ def true_pose(i: int) -> np.ndarray:
     return se3_exp(np.array([0.05 * i, 0.002 * i, np.sin(0.2 * i), 0.0, 0.02 * i, 0.0]))
 
 
-def write_results(out: Path, with_ground_truth: bool = True, with_residuals: bool = True) -> None:
-    """What a run leaves: an estimate that is the truth seen through a similarity, plus noise."""
+def write_results(out: Path, with_ground_truth: bool = True, with_residuals: bool = True, threshold: float = 1.1,
+                  events_at: dict[int, list[EventKind]] | None = None) -> None:
+    """What a run leaves: an estimate that is the truth seen through a similarity, plus noise; a divergence at
+    frame 20 unless ``events_at`` says which events come at which frames."""
+    events_at = {20: [EventKind.DIVERGENCE_DETECTED]} if events_at is None else events_at
     files = FilesSink(out)
     files.begin(load_config())
     S = sim3(0.5, so3_exp(np.array([0.1, -0.4, 0.2])), np.array([1.0, 2.0, -0.5]))
@@ -37,9 +40,10 @@ def write_results(out: Path, with_ground_truth: bool = True, with_residuals: boo
         T[:3, :3] /= 0.5
         T[:3, 3] += rng.normal(scale=0.002, size=3)
         rmse = (10.0, 6.0 + (5.0 if i == 20 else 0.0)) if with_residuals else (None, None)
-        if i == 20:
-            files.on_event(Event(EventKind.DIVERGENCE_DETECTED, i, 0.1 * i))
-        files.on_frame(None, FrameResult(i, 0.1 * i, T, True, i % 5 == 0, *rmse))
+        for kind in events_at.get(i, []):
+            files.on_event(Event(kind, i, 0.1 * i))
+        files.on_frame(None, FrameResult(i, 0.1 * i, T, True, i % 5 == 0, *rmse,
+                                         divergence_threshold=threshold if with_residuals else None))
     if with_ground_truth:
         files.write_ground_truth(Trajectory(0.1 * np.arange(FRAMES), [true_pose(i) for i in range(FRAMES)]))
     files.write_metrics({"sequence": "walk", "method": "direct"})
@@ -91,3 +95,26 @@ def test_views_are_the_widest_plane_and_the_third_axis_or_the_plane_asked_for():
     assert view_axes(positions, None) == ((0, 2), (0, 1))
     assert view_axes(positions, "xy") == ((0, 1), (0, 2))
     assert view_axes(positions, "yz") == ((1, 2), (1, 0))
+
+
+def ratio_panel(result_dir: Path):
+    figure = draw(read_run(result_dir), None, None, "test")
+    return next(axes for axes in figure.axes if axes.get_title() == "direct alignment: residual ratio")
+
+
+def test_the_ratio_panel_draws_the_runs_divergence_threshold(tmp_path):
+    """Issue 47: the dashed line sat at 1.0, not at the threshold 1 + epsilon of the run."""
+    write_results(tmp_path, threshold=1.25)
+    (line,) = [line for line in ratio_panel(tmp_path).get_lines() if line.get_label() == THRESHOLD_LABEL]
+    assert np.all(line.get_ydata() == 1.25)
+
+
+def test_drops_jumps_and_a_divergence_with_its_recovery_on_one_frame_are_all_marked_apart(tmp_path):
+    write_results(tmp_path, events_at={10: [EventKind.FRAMES_DROPPED], 20: [EventKind.DIVERGENCE_DETECTED,
+                                                                             EventKind.RECOVERY_SUCCEEDED],
+                                       30: [EventKind.FRAMES_JUMPED]})
+    markers = {line.get_label(): line for line in ratio_panel(tmp_path).get_lines() if line.get_marker() != "None"}
+    assert {"frames dropped", "frames jumped", "divergence detected", "recovery succeeded"} <= set(markers)
+    divergence, recovery = markers["divergence detected"], markers["recovery succeeded"]
+    assert divergence.get_xdata()[0] == recovery.get_xdata()[0]  # the same frame...
+    assert divergence.get_ydata()[0] != recovery.get_ydata()[0]  # ...in lanes of their own

@@ -8,6 +8,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+import warnings
 import urllib.request
 from types import SimpleNamespace
 
@@ -215,7 +216,7 @@ def test_scene_layers_and_restart(fake_view):
     assert {"/trajectory", "/camera", "/map/direct", "/map/features", "/keyframes/0", "/keyframes/4",
             "/keyframes/8", "/events/tracking_failed"} <= set(nodes)
     np.testing.assert_allclose(nodes["/camera"].position, pose(9)[:3, 3])
-    np.testing.assert_allclose(nodes["/events/tracking_failed"].points, [pose(9)[:3, 3]], atol=1e-3)  # float16
+    np.testing.assert_allclose(nodes["/events/tracking_failed"].points, [pose(9)[:3, 3]], atol=1e-6)  # float32
     assert nodes["/trajectory"].points.shape == (9, 2, 3)
     assert "ERROR: frame 8 tracking_failed" in view.event_log.content
     assert view.image.image[10, 10].tolist() == [60, 230, 60]  # a tracked pixel is painted
@@ -235,6 +236,21 @@ def test_scene_layers_and_restart(fake_view):
     feed(view, 0)  # the new pass
     view.refresh()
     assert not view._nodes["/map/direct"][1].visible  # a switched-off layer stays off
+
+
+def test_far_points_reach_the_page_as_float32_without_overflow(fake_view):
+    """Issue 47: viser's default float16 turned far feature points into inf, with a RuntimeWarning."""
+    view, _ = fake_view
+    far = np.array([[1.0e6, 2.0, 3.0], [100.123, -7.0e4, 0.5]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow in a cast fails the test
+        view.on_frame(frame(0), FrameResult(0, 0.0, pose(0), True, is_keyframe=True))
+        view.on_map(MapSnapshot(far, np.ones(2), far, {0: pose(0)}))
+        view.refresh()
+    for name in ("/map/direct", "/map/features"):
+        points = view._nodes[name][1].points
+        assert points.dtype == np.float32
+        np.testing.assert_allclose(points, far, rtol=1e-6)
 
 
 def wait_until(condition, timeout_s: float = 60.0) -> None:

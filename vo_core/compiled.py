@@ -1,7 +1,8 @@
 """How the hot loops are compiled (numba), in one place.
 
-Every kernel is cached on disk (the first run compiles, later runs load it) and releases the interpreter's lock, so
-tracking and mapping overlap on their threads as OpenCV's calls do. Division follows numpy: a division by zero gives
+Every kernel is cached on disk in the user's cache, never in the package (vo_core/kernel_cache.py; the first run
+compiles, later runs load it), and releases the interpreter's lock, so tracking and mapping overlap on their threads
+as OpenCV's calls do. Division follows numpy: a division by zero gives
 inf or NaN instead of raising ZeroDivisionError, so the machine code carries no zero test before each division (a
 teddy window's linearization 6 % faster, the same numbers) and the kernels that can meet such values test for them.
 
@@ -15,7 +16,16 @@ that loaded it from the cache gave teddy trajectories 1e-15 apart at the start, 
 
 from __future__ import annotations
 
+import os
+
 import numba
+
+from vo_core.kernel_cache import CACHE_VARIABLE
+
+# A numba imported before vo_core (by the caller's own code) read its settings before vo_core/__init__.py set the
+# cache folder: the kernels below are placed by this setting when they are decorated.
+if not numba.config.CACHE_DIR:
+    numba.config.CACHE_DIR = os.environ[CACHE_VARIABLE]
 
 
 def kernel(function=None, *, parallel: bool = False):

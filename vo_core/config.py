@@ -21,6 +21,7 @@ from vo_core.errors import InputError
 from vo_core.features.config import FeatureConfig
 from vo_core.front_ends.klt.config import KltConfig
 from vo_core.init.config import InitConfig
+from vo_core.yaml_input import parse_yaml
 
 METHODS = ("fdmo", "direct", "features", "klt")
 
@@ -162,7 +163,7 @@ def _coerce(value: Any, annotation: Any, key: str) -> Any:
 def _coerce_items(value: Any, annotation: Any, key: str) -> list | tuple:
     """A list from YAML (``[1, 2]``, also as the text of --set); ``tuple[float, float]`` fixes its length."""
     if isinstance(value, str):
-        value = _yaml_value(value, f"config key '{key}'")
+        value = parse_yaml(value, f"config key '{key}'", numbered=False)
     item_types = typing.get_args(annotation)
     fixed_length = len(item_types) if item_types and Ellipsis not in item_types else None
     if not isinstance(value, (list, tuple)) or fixed_length not in (None, len(value)):
@@ -206,13 +207,6 @@ _SCALARS = {bool: (_boolean, "true or false"), int: (_integer, "an integer"), fl
             str: (_text, "text")}
 
 
-def _yaml_value(text: str, source: str) -> Any:
-    try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise InputError(f"{source}: malformed YAML ({str(error).splitlines()[0]})") from None
-
-
 def _apply(obj: Any, values: dict[str, Any], prefix: str, source: str) -> None:
     hints = _field_types(type(obj))
     for name, value in values.items():
@@ -246,7 +240,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             text = path.read_text()
         except (OSError, UnicodeDecodeError) as error:
             raise InputError(f"{path}: cannot read ({error.__class__.__name__})") from None
-        values = _yaml_value(text, str(path)) or {}
+        values = parse_yaml(text, str(path)) or {}
         if not isinstance(values, dict):
             raise InputError(f"{path}: the config must be a mapping of keys to values")
         _apply(config, values, "", str(path))
@@ -259,7 +253,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
         parts = key.strip().split(".")
         for part in parts[:-1]:
             cursor = cursor.setdefault(part, {})
-        cursor[parts[-1]] = _yaml_value(raw, f"--set {item}") if raw.strip() else raw
+        cursor[parts[-1]] = parse_yaml(raw, f"--set {item}", numbered=False) if raw.strip() else raw
         _apply(config, nested, "", f"--set {item}")
     _validate(config)
     return config

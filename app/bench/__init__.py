@@ -10,7 +10,7 @@ The matrix format is in matrix.py, a cell's command and row in cell.py, the pool
 table and plots in report.py. Each finished cell leaves DIR/cells/<cell>/cell.json: running the same matrix into
 the same folder again skips those cells (resume), and ``--retry-failed`` runs again those that failed or timed
 out. Ctrl-C (or SIGTERM) stops the cells running (they finish their files), keeps every cell finished, writes the
-table of those and exits with 130.
+table of those and exits with 130 (143 for SIGTERM).
 """
 
 from __future__ import annotations
@@ -31,13 +31,13 @@ from app.bench.cell import CELLS_DIR, INTERRUPTED, OK, CellJob
 from app.bench.executors import LOCAL_RAY, import_ray, run_in_pool, run_on_ray
 from app.bench.matrix import Cell, Matrix, load_matrix
 from app.bench.report import write_report
+from app.exit_codes import EXIT_INTERRUPTED, EXIT_OK, EXIT_TERMINATED
 from app.progress import CellProgress
 from vo_core.errors import InputError
 
 CELL_FILE = "cell.json"
 MATRIX_FILE = "matrix.yaml"  # the matrix as the bench understood it, beside its results
 RESULTS_ROOT = Path("results")
-EXIT_OK, EXIT_INTERRUPTED = 0, 130
 
 Executor = Callable[[list[CellJob]], Iterator[dict[str, Any]]]
 
@@ -90,13 +90,18 @@ def command_bench(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, stopping the bench as Ctrl-C does, but exiting with its own code."""
+
+
 def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
+    raise _Terminated
 
 
 def bench(matrix: Matrix, out_dir: Path, executor: Executor, retry_failed: bool = False, quiet: bool = False) -> int:
     """Run the cells of ``matrix`` not yet finished in ``out_dir`` with ``executor`` and write the report over all
-    of them. Returns the exit code: 0, or 130 when interrupted (the report then covers the cells finished)."""
+    of them. Returns the exit code: 0, or 130 when interrupted, 143 when terminated (the report then covers the
+    cells finished)."""
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
     out_dir = out_dir.absolute()
@@ -109,7 +114,7 @@ def bench(matrix: Matrix, out_dir: Path, executor: Executor, retry_failed: bool 
     say = (lambda text: None) if quiet else (lambda text: print(f"fdmo bench: {text}", file=sys.stderr))
     say(f"{len(cells)} cells, {len(rows)} already done in {out_dir}, {len(jobs)} to run")
     progress = None if quiet else CellProgress(len(jobs))
-    interrupted = False
+    stopped_by: KeyboardInterrupt | None = None
     try:
         for row in executor(jobs) if jobs else ():
             if row["status"] == INTERRUPTED:
@@ -118,8 +123,8 @@ def bench(matrix: Matrix, out_dir: Path, executor: Executor, retry_failed: bool 
             (Path(row["folder"]) / CELL_FILE).write_text(json.dumps(row, indent=1) + "\n")
             if progress is not None:
                 progress.done(row)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as stop:
+        stopped_by = stop
     finally:
         if progress is not None:
             progress.close()
@@ -128,8 +133,10 @@ def bench(matrix: Matrix, out_dir: Path, executor: Executor, retry_failed: bool 
     if table and not quiet:
         print(table)
         print(f"results in {out_dir}" + (f" ({len(ordered)} of {len(cells)} cells; run the same command again to "
-                                          "go on)" if interrupted else ""))
-    return EXIT_INTERRUPTED if interrupted else EXIT_OK
+                                          "go on)" if stopped_by is not None else ""))
+    if stopped_by is None:
+        return EXIT_OK
+    return EXIT_TERMINATED if isinstance(stopped_by, _Terminated) else EXIT_INTERRUPTED
 
 
 def finished_row(out_dir: Path, cell: Cell, retry_failed: bool) -> dict[str, Any] | None:

@@ -27,12 +27,12 @@ from pathlib import Path
 from typing import Any
 
 from app.bench.matrix import Cell
+from app.exit_codes import INTERRUPTED_CODES
 
 CELLS_DIR = "cells"
 LOG_FILE = "log.txt"
 OK, FAILED, TIMEOUT, INTERRUPTED = "ok", "failed", "timeout", "interrupted"
 ERROR_PREFIX = "fdmo: error: "  # app/cli.py's one-line message on bad input
-EXIT_INTERRUPTED = 130  # fdmo's code when a signal cut its run short
 STOP_GRACE_S = 10.0  # after SIGINT, how long a cell may take to write its files before it is killed
 # The columns of a row, in the order of results.csv. The metrics are those of the cell's task; others stay empty.
 LABELS = ("sequence", "method", "setting", "task", "seed")
@@ -110,7 +110,7 @@ def _wait(process: subprocess.Popen, timeout_s: float, folder: Path) -> tuple[st
         return TIMEOUT, f"still running after {timeout_s:g} s: stopped"
     if code == 0:
         return OK, None
-    if code == EXIT_INTERRUPTED or code == -signal.SIGINT:
+    if code in INTERRUPTED_CODES or code == -signal.SIGINT:
         return INTERRUPTED, "stopped before its end"
     if code < 0:
         return FAILED, f"killed by {signal.Signals(-code).name}"

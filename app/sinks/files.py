@@ -7,10 +7,12 @@ at the start.
 A backward jump (``--jump``) plays frames again. frames.csv and events.jsonl keep a line per processing, in the
 order of processing; the TUM files keep one line per timestamp, in time order (TUM readers and evo require
 increasing timestamps): the outcome of the frame's latest processing, so a replayed frame's line is its new pose,
-and a frame that got no pose when played again loses its line. Poses the odometry takes back (a start found wrong,
-INITIALIZATION_REJECTED) leave the TUM files, and frames.csv says their frames untracked. At the end, metrics.json,
-the final keyframes.tum, the ground truth of the run (groundtruth.tum) and the maps (map_direct.ply,
-map_features.ply) replace the old files atomically (write, then rename).
+and a frame that got no pose when played again loses its line. The first frame of a start is posed when the start
+succeeds, frames later (INITIALIZATION_SUCCEEDED): its line enters the TUM files then, and its frames.csv line says
+tracked and keyframe. Poses the odometry takes back (a start found wrong, INITIALIZATION_REJECTED) leave the TUM
+files, and frames.csv says their frames untracked. At the end, metrics.json, the final keyframes.tum, the ground
+truth of the run (groundtruth.tum) and the maps (map_direct.ply, map_features.ply) replace the old files atomically
+(write, then rename).
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ FEATURE_MAP_FILE = "map_features.ply"
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw\n"  # the header vo_core.trajectory.write_trajectory writes
 PLY_PROPERTIES = (("x", "<f4", "float"), ("y", "<f4", "float"), ("z", "<f4", "float"),
                   ("red", "u1", "uchar"), ("green", "u1", "uchar"), ("blue", "u1", "uchar"))  # name, numpy, PLY
-FRAMES_COLUMNS = ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after", "num_inliers")
+FRAMES_COLUMNS = ("frame", "timestamp", "tracked", "is_keyframe", "rmse_before", "rmse_after", "num_inliers",
+                  "divergence_threshold")
 
 
 class FilesSink:
@@ -86,8 +89,24 @@ class FilesSink:
 
     def on_event(self, event: Event) -> None:
         self._files[EVENTS_FILE].write(to_json(event.to_json_dict()) + "\n")
-        if event.kind is EventKind.INITIALIZATION_REJECTED:
-            self._retract(event.details.get("retracted", []))
+        if event.kind is EventKind.INITIALIZATION_SUCCEEDED:
+            self._pose_first_keyframe(event.details)
+        elif event.kind is EventKind.INITIALIZATION_REJECTED:
+            first = self._timestamps.get(event.details.get("first_frame"))
+            self._retract([*event.details.get("retracted", []), *([] if first is None else [first])])
+
+    def _pose_first_keyframe(self, details: dict[str, Any]) -> None:
+        """An initializer poses its first frame, as a keyframe, only when it succeeds, frames later: that frame's
+        frames.csv line is rewritten (tracked, keyframe) and its pose enters both TUM files, so that every file
+        agrees with keyframes.tum (issue 47: frame 0 was a keyframe there, and untracked everywhere else)."""
+        timestamp = self._timestamps.get(details.get("first_frame"))
+        if timestamp is None or details.get("first_T_world_cam") is None:
+            return
+        T_world_cam = np.asarray(details["first_T_world_cam"], dtype=float)
+        self._trajectory.record(timestamp, T_world_cam)
+        self._keyframes.record(timestamp, T_world_cam)
+        self._retracted.discard(timestamp)
+        self._set_frame_flags({f"{timestamp:.9f}"}, tracked=True, is_keyframe=True)
 
     def _retract(self, timestamps) -> None:
         """Poses taken back (posed in a start found wrong): their lines leave the TUM files, and their frames.csv
@@ -96,9 +115,10 @@ class FilesSink:
         self._trajectory.remove(timestamps)
         self._keyframes.remove(timestamps)
         self._retracted.update(timestamps)
-        self._untrack_frames({f"{t:.9f}" for t in timestamps})
+        self._set_frame_flags({f"{t:.9f}" for t in timestamps}, tracked=False, is_keyframe=False)
 
-    def _untrack_frames(self, timestamps: set[str]) -> None:
+    def _set_frame_flags(self, timestamps: set[str], tracked: bool, is_keyframe: bool) -> None:
+        """The frames.csv lines of the frames at ``timestamps`` (as written) get these flags, rewritten at once."""
         if not timestamps:
             return
         path = self.out_dir / FRAMES_FILE
@@ -107,7 +127,7 @@ class FilesSink:
         for i, line in enumerate(lines[1:], start=1):
             fields = line.split(",")
             if fields[1] in timestamps:
-                fields[2] = fields[3] = "0"  # tracked, is_keyframe
+                fields[2], fields[3] = str(int(tracked)), str(int(is_keyframe))
                 lines[i] = ",".join(fields)
         self._files[FRAMES_FILE] = rewritten_line_file(path, "".join(line + "\n" for line in lines))
 
@@ -217,7 +237,7 @@ class PoseLines:
 def frames_line(result: FrameResult) -> str:
     """The frames.csv line of a frame: flags as 1/0, and an empty field where a method has no value."""
     values = (result.frame_index, f"{result.timestamp:.9f}", int(result.tracked), int(result.is_keyframe),
-              result.rmse_before, result.rmse_after, result.num_inliers)
+              result.rmse_before, result.rmse_after, result.num_inliers, result.divergence_threshold)
     return ",".join("" if value is None else f"{value:.9g}" if isinstance(value, float) else str(value)
                     for value in values)
 

@@ -69,6 +69,9 @@ THUMBNAIL_WIDTH = 120  # pixels of a keyframe frustum's thumbnail
 # makes its first frame a keyframe only once it succeeds, several frames later.
 RECENT_IMAGES = 32
 LINE_THICKNESS_PX = 3.0
+# Point clouds as float32: viser's default, float16, overflows past 65504 (far feature points became inf, with a
+# RuntimeWarning: overflow encountered in cast) and keeps 3 digits (a point 100 m out moves in 6 cm steps).
+POINT_PRECISION = "float32"
 MAX_FRAMES = 1000  # the most frames a drop or a jump back asks for
 SPEEDS = (0.0, 4.0, 0.25)  # slider min, max, step; 0 = as fast as possible
 DEFAULT_FRAMES = 10
@@ -416,7 +419,7 @@ class ViserView:
             if self._marker_count(kind) != len(positions):
                 self._add("events", f"/events/{kind.value}", scene.add_point_cloud,
                           points=positions.astype(np.float32), colors=kind_style(kind).color,
-                          point_size=self._scale.marker, point_shape="circle")
+                          point_size=self._scale.marker, point_shape="circle", precision=POINT_PRECISION)
 
     def _draw_plot(self, rows: list[tuple]) -> None:
         columns, _ = _plot_columns(rows if len(rows) >= len(PLOT_PLACEHOLDER) else PLOT_PLACEHOLDER)
@@ -438,11 +441,11 @@ class ViserView:
         if drawing.direct_points is not None:
             self._add("direct cloud", "/map/direct", scene.add_point_cloud,
                       points=drawing.direct_points.astype(np.float32), colors=drawing.direct_colors,
-                      point_size=self._scale.point, point_shape="circle")
+                      point_size=self._scale.point, point_shape="circle", precision=POINT_PRECISION)
         if drawing.feature_points is not None:
             self._add("feature cloud", "/map/features", scene.add_point_cloud,
                       points=drawing.feature_points.astype(np.float32), colors=FEATURE_POINT_COLOR,
-                      point_size=self._scale.point, point_shape="diamond")
+                      point_size=self._scale.point, point_shape="diamond", precision=POINT_PRECISION)
         for index, T_world_cam in drawing.keyframe_poses.items():
             frustum = self._node(f"/keyframes/{index}")
             if frustum is None:

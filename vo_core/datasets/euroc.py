@@ -62,7 +62,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
 def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
     """data.csv: 'timestamp [ns],filename' per line; images in data/ beside it."""
     timestamps, paths = [], []
-    for number, line in text_lines(list_file):
+    entries = text_lines(list_file)
+    for number, line in entries:
         fields = split_fields(line)
         if len(fields) < 2 or not fields[0].isdecimal():
             raise InputError(f"{list_file}:{number}: expected 'timestamp_ns,filename', found '{line}'")
@@ -71,7 +72,7 @@ def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
     if not paths:
         raise InputError(f"{list_file}: lists no images")
     timestamps = np.array(timestamps)
-    check_increasing(timestamps, list_file)
+    check_increasing(timestamps, list_file, [number for number, _ in entries])
     check_files_exist(paths, list_file)
     return timestamps, paths
 

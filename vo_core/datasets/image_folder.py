@@ -31,7 +31,7 @@ from vo_core.datasets.base import (
     nominal_timestamps,
 )
 from vo_core.datasets.calibration import find_camera_file, load_camera_file
-from vo_core.datasets.textfiles import check_increasing, read_table
+from vo_core.datasets.textfiles import check_increasing, data_line_numbers, read_table
 from vo_core.errors import InputError
 from vo_core.trajectory import MIN_NANOSECOND_TIMESTAMP, read_trajectory, seconds_from_nanoseconds
 
@@ -108,7 +108,7 @@ def _listed_timestamps(times_file: Path, count: int) -> np.ndarray:
     timestamps = read_table(times_file, 1)[:, 0]
     if len(timestamps) != count:
         raise InputError(f"{times_file}: {len(timestamps)} timestamps for {count} images")
-    check_increasing(timestamps, times_file)
+    check_increasing(timestamps, times_file, data_line_numbers(times_file))
     return timestamps
 
 

@@ -17,7 +17,14 @@ import numpy as np
 
 from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, fill_numbering_gaps, image_size
 from vo_core.datasets.calibration import CameraFile, load_camera_file
-from vo_core.datasets.textfiles import check_increasing, parse_numbers, read_table, split_fields, text_lines
+from vo_core.datasets.textfiles import (
+    check_increasing,
+    data_line_numbers,
+    parse_numbers,
+    read_table,
+    split_fields,
+    text_lines,
+)
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.trajectory import Trajectory, read_trajectory
@@ -49,7 +56,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
                                                      lambda number: f"{number:0{digits}d}.png")
     times_file = path / "times.txt"
     timestamps = _per_frame(read_table(times_file, 1)[:, 0], frame_numbers, times_file)
-    check_increasing(timestamps, times_file)
+    check_increasing(timestamps, times_file, np.array(data_line_numbers(times_file))[frame_numbers])
     if options.camera_file is not None:
         calibration = load_camera_file(options.camera_file)
     else:

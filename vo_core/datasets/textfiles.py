@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from vo_core.errors import InputError
+from vo_core.yaml_input import parse_yaml
 
 _SEPARATORS = re.compile(r"[,\s]+")
 
@@ -84,24 +84,32 @@ def read_yaml(path: Path) -> dict[str, Any]:
     """A YAML mapping. OpenCV's ``%YAML:1.0`` directive (EuRoC's sensor.yaml) is not YAML 1.1: it is skipped."""
     text = read_text(require_file(path, "YAML file"))
     text = re.sub(r"^%YAML:1\.0\s*\n", "", text)
-    try:
-        content = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f":{mark.line + 1}" if mark is not None else ""
-        raise InputError(f"{path}{where}: malformed YAML ({getattr(error, 'problem', None) or error})") from None
+    content = parse_yaml(text, str(path))
     if not isinstance(content, dict):
         raise InputError(f"{path}: expected a YAML mapping of keys to values")
     return content
 
 
-def check_increasing(timestamps: np.ndarray, path: Path) -> None:
-    """Timestamps must be finite and strictly increasing; the first offender is named."""
+def check_increasing(timestamps: np.ndarray, path: Path, line_numbers=None) -> None:
+    """Timestamps must be finite and strictly increasing; the first offender is named by its line in ``path``
+    (``line_numbers``: the line of each timestamp, where they were read from lines), else by its position (the
+    names of a folder's images, a video's frames)."""
     timestamps = np.asarray(timestamps, dtype=float)
+
+    def offender(index: int) -> tuple[str, str]:  # (where, what): "file:line", "" or "file", " at entry N"
+        return (f"{path}:{line_numbers[index]}", "") if line_numbers is not None else (str(path), f" at entry {index}")
+
     if not np.all(np.isfinite(timestamps)):
-        raise InputError(f"{path}: non-finite timestamp at entry {int(np.argmin(np.isfinite(timestamps)))}")
+        where, entry = offender(int(np.argmin(np.isfinite(timestamps))))
+        raise InputError(f"{where}: non-finite timestamp{entry}")
     steps = np.diff(timestamps)
     if np.any(steps <= 0):
         bad = int(np.argmax(steps <= 0)) + 1
         kind = "duplicated" if steps[bad - 1] == 0 else "out of order"
-        raise InputError(f"{path}: timestamp {timestamps[bad]:.9f} at entry {bad} is {kind}")
+        where, entry = offender(bad)
+        raise InputError(f"{where}: timestamp {timestamps[bad]:.9f}{entry} is {kind}")
+
+
+def data_line_numbers(path: Path) -> list[int]:
+    """The line number of each row ``read_table`` reads from ``path``."""
+    return [number for number, _ in text_lines(path)]

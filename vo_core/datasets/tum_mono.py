@@ -26,7 +26,7 @@ from vo_core.datasets.base import (
 )
 from vo_core.datasets.calibration import load_camera_file
 from vo_core.datasets.image_folder import IMAGE_SUFFIXES, image_files
-from vo_core.datasets.textfiles import check_increasing, read_table
+from vo_core.datasets.textfiles import check_increasing, data_line_numbers, read_table
 from vo_core.errors import InputError
 from vo_core.geometry.photometric import load_photometric_calibration
 from vo_core.trajectory import Trajectory, read_trajectory
@@ -50,7 +50,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     times = read_table(times_file, 3)  # id, timestamp (s), exposure (ms)
     if len(times) != len(images):
         raise InputError(f"{times_file}: {len(times)} lines for {len(images)} images")
-    check_increasing(times[:, 1], times_file)
+    check_increasing(times[:, 1], times_file, data_line_numbers(times_file))
     calibration = load_camera_file(options.camera_file or path / "camera.txt")
     camera = calibration.camera
     photometric = load_photometric_calibration(

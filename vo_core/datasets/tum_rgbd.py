@@ -68,7 +68,7 @@ def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
         timestamps.append(parse_numbers(list_file, number, fields[:1])[0])
         paths.append(list_file.parent / fields[1])
     timestamps = np.array(timestamps)
-    check_increasing(timestamps, list_file)
+    check_increasing(timestamps, list_file, [number for number, _ in entries])
     check_files_exist(paths, list_file)
     return timestamps, paths
 

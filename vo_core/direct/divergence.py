@@ -93,8 +93,10 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
         jump = True
     motion_ratio = tracking.motion_ratio
     if motion_ratio is not None and motion_ratio > config.sudden_motion_factor:
+        # After a gap the timestamps show, the large motion is that gap's, not a jump they do not show.
+        unseen = ": a jump the timestamps do not show" if tracking.intervals_missed is None else " across the gap"
         reasons.append(f"the image moved {tracking.image_motion_px:.0f} px, {motion_ratio:.1f}x the last frames' "
-                       f"median of {tracking.typical_motion_px:.1f} px: a jump the timestamps do not show")
+                       f"median of {tracking.typical_motion_px:.1f} px{unseen}")
         jump = True
     if reasons:
         return Judgement(Verdict.SUSPECT, ratio, threshold, "; ".join(reasons), jump)

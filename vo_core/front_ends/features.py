@@ -146,7 +146,8 @@ class FeatureOnlyOdometry:
         second.point_ids[start.feature_second] = ids
         self.map.representative_descriptors(ids)
         self.map.update_normals(ids)
-        self._emit(EventKind.INITIALIZATION_SUCCEEDED, **start.details, second_frame=frame.index)
+        self._emit(EventKind.INITIALIZATION_SUCCEEDED, **start.details, first_T_world_cam=first.T_world_cam.tolist(),
+                   second_frame=frame.index)
         tracked = TrackedFrame(frame.index, frame.timestamp, features, second.T_world_cam, second.point_ids.copy(),
                                second.frame_index)
         self.state = State.OK

@@ -103,8 +103,11 @@ class KltOdometry:
         self.bootstrapping = False
         landmarks = int(bootstrap.triangulated.sum())
         self._emit(EventKind.INITIALIZATION_SUCCEEDED, first_frame=bootstrap.first_frame_index,
+                   first_T_world_cam=self.keyframes[0].T_world_cam.tolist(),
                    second_frame=bootstrap.second_frame_index, landmarks=landmarks,
                    median_parallax_deg=round(bootstrap.median_parallax_deg, 3))
+        for keyframe in self.keyframes:  # the bootstrap's two keyframes, announced as every later one is
+            self._emit(EventKind.KEYFRAME_ADDED, keyframe=keyframe.frame_index, landmarks=landmarks)
         with self._stage("detect"):
             self._detect_new_corners(frame.image, self.keyframes[-1])
         self.landmarks_at_keyframe = landmarks
