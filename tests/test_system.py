@@ -18,9 +18,9 @@ ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "assets" / "rgbd_dataset_freiburg3_teddy_first80"
 # The bundled run of --method direct (written by `fdmo run --method direct --no-rrd --out ...`, 9 decimals): the
 # move of the flowchart into system.py left it bit-identical; a change that moves it says why and writes it anew
-# (last: pixel selection scores along DSO's 16 directions and the tracking reference's intensities are exact
-# bilinear samples, so other points are selected and the first frames move by up to 2 mm, ATE 0.00442 -> 0.00430 m
-# on this machine).
+# (last: the start's motion comes from a five-point essential matrix of the fundamental matrix's inliers instead of
+# the projection of K^T F K, so the start's first poses move by up to 0.3 mm and the run by up to 2 mm, ATE
+# 0.00430 -> 0.00459 m on this machine).
 STORED_DIRECT_RUN = ROOT / "tests" / "data" / "bundled_direct_trajectory.tum"
 # Written on an Intel Xeon (2026-11-28). The first frames, up to the first window optimization, match
 # it to 1e-9 on any CPU; after that, another CPU rounds differently inside BLAS, numpy's SIMD reductions and the
@@ -48,14 +48,15 @@ def test_the_bundled_direct_run_is_unchanged():
 
 
 @pytest.mark.skipif(not BUNDLED.is_dir(), reason="the bundled sequence is not in this checkout")
-@pytest.mark.parametrize("seed, why", [(2, "no better"), (1, "too few to restart from")])
+@pytest.mark.parametrize("seed, why", [(2, "no better"), (0, "too few to restart from")])
 def test_frames_missed_after_the_start_do_not_trade_the_window_for_a_young_feature_map(seed, why):
     """Live under load, frames 4-16 and 18-22 were missed right after the start. The frame after the gap is suspect,
     and the feature map (the start's two keyframes, 3 frames apart) disagrees with its direct pose. Restarted on the
     feature map's ~75 two-view points, the direct map's scale collapsed 10x, unreported, and the run ended 0.09-0.13 m
     off. The same window goes on instead (0.005 m, seeds 0-7): at seed 2 the alignment from the recovered pose fits
-    the images no better (RMSE 13.51 against the motion model's 13.42), no lock to leave; at seed 1 it fits them
-    better (13.48 against 14.20), but none of the points in view is seen by 3 keyframes, too few to restart from."""
+    the images no better, no lock to leave; at seed 0 it fits them better, but none of the points in view is seen by
+    3 keyframes, too few to restart from (which seed takes which path moves with the start's arithmetic: seeds 0-7
+    all stay in the window)."""
     sequence = open_sequence(BUNDLED)
     odometry = Odometry(load_config(overrides=["method=fdmo", f"seed={seed}"]), sequence.camera)
     missed = set(range(4, 17)) | set(range(18, 23))
