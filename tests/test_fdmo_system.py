@@ -364,34 +364,3 @@ def test_the_motion_prior_judges_a_gap_only_where_the_motion_has_been_predictabl
         T[:3, 3] += shake  # 5 cm steps, 2 cm of shake: a hand (teddy: 0.27 of each step, median)
     odometry.posed = posed(shaken)
     assert not odometry._prior_reliable(gap)
-
-
-@pytest.mark.parametrize("explained, restarted", [(0.2, True), (0.95, False)])
-def test_a_scale_jump_is_judged_by_the_feature_map(monkeypatch, explained, restarted):
-    """Where the direct map's scale jumps at a keyframe (scale_watch.py), the feature map, built at the scale the map
-    had, says where the camera is: a direct pose that explains few of its matches is a scale the map lost, and the
-    direct map restarts at the feature map's pose and scale (TUM fr1/desk: 0.28 -> 0.21 m); one that explains them
-    was the motion's (EuRoC MH05's two jumps, both kept)."""
-    from vo_core.direct.scale_watch import ScaleWatch
-
-    observe = ScaleWatch.observe
-    readings = []
-
-    def jump_once(self, speed, mean_inverse_depth):  # the fourth keyframe after the start reads as a jump
-        reading = observe(self, speed, mean_inverse_depth)
-        readings.append(reading)
-        if len(readings) == 8:
-            reading.step_ratio, reading.depth_ratio, reading.jump = 0.3, 3.0, True
-        return reading
-
-    monkeypatch.setattr(ScaleWatch, "observe", jump_once)
-    odometry = Odometry(load_config(overrides=["method=fdmo"]), CAMERA)
-    odometry.features.explained = lambda *_: explained
-    results = [odometry.track(frame) for frame in SMOOTH]
-    jump = next(r for r in results if any(e.kind is EventKind.SCALE_JUMP for e in r.events))
-    happened = [e.kind for e in jump.events]
-    assert (EventKind.DIRECT_RESTARTED in happened) is restarted
-    if restarted:
-        reason = next(e for e in jump.events if e.kind is EventKind.DIVERGENCE_DETECTED).details["reason"]
-        assert "scale jumped" in reason and "20%" in reason
-    assert all(r.T_world_cam is not None for r in results if r.frame_index >= jump.frame_index)

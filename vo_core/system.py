@@ -316,9 +316,7 @@ class Odometry:
         # Offline, a start on probation is mapped here too: one that fails is discarded at the frame it fails at.
         inline = not self.direct.initialized or (self.direct.on_probation and self.config.mapping.wait_for_keyframes)
         if self.mapper is None or inline:
-            keyframe = self.direct.accept(frame, tracking, result)
-            if self._scale_held(frame, tracking, result):
-                self._grow_feature_map(keyframe, result)
+            self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
             return
         # Offline the frame is accepted while the last keyframe is still being mapped: its tracing, or the keyframe it
         # asks for, waits behind that one in the mapper's queue. Live, no keyframe is asked for while one is pending.
@@ -337,29 +335,6 @@ class Odometry:
 
         self.queued_frame = frame.index
         self.mapper.submit(frame.index, frame.timestamp, map_direct, keyframe=make_keyframe, may_skip=not make_keyframe)
-
-    def _scale_held(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult) -> bool:
-        """At a keyframe where the direct map's scale jumped (scale_watch.py), the feature map, built at the scale
-        the map had, says where the camera is: where the direct pose explains its matches, the jump was the
-        motion's and the map goes on; where it does not, the direct map restarts at the feature map's pose and
-        scale. Returns whether the direct map was kept."""
-        jumped = [e for e in result.events if e.kind is EventKind.SCALE_JUMP]
-        if self.features is None or not jumped or self._feature_map_empty:
-            return True
-        outcome = self.features.recover(frame.frame.image, tracking.reference.frame_index, result.T_world_cam)
-        result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
-        if not outcome.succeeded:
-            return True
-        explained = self.features.explained(outcome.pose, result.T_world_cam, outcome.features)
-        if explained >= self.config.fdmo.agreement:
-            return True
-        _emit(result, EventKind.DIVERGENCE_DETECTED, {
-            "verdict": "scale", "reason": (f"the map's scale jumped {jumped[0].details['factor']:.2f}x and the direct "
-                                           f"pose explains {explained:.0%} of the feature map's matches"),
-            **outcome.details()})
-        _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
-        self._continue_from(frame, outcome, None, result)
-        return False
 
     def _submit_feature_keyframes(self, frame_index: int, timestamp: float, initialization=None) -> None:
         """Hand the feature mapping thread the direct keyframes the feature map does not have yet."""
