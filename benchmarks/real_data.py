@@ -66,14 +66,14 @@ def read_cells(folder: Path) -> list[dict]:
             "failures": sum(counts.get(kind, 0) for kind in FAILURES),
             "recoveries": counts.get("recovery_succeeded", 0), "reinitializations": counts.get("reinitialization", 0),
             "reported": any(counts.get(kind, 0) for kind in REPORTED),
-            "silent_stretches": silent_stretches(cell, events),
+            "silent_stretches": silent_stretches(cell, events) if metrics["posed_frames"] else 0,
         })
     return rows
 
 
 def silent_stretches(cell: Path, events: list[dict]) -> int:
     estimate_file, truth_file = cell / "trajectory.tum", cell / "groundtruth.tum"
-    if not truth_file.exists() or not estimate_file.exists() or not estimate_file.read_text().strip():
+    if not truth_file.exists():
         return 0
     reported = np.array([e["timestamp"] for e in events if e["kind"] in REPORTED])
     starts = np.array([e["timestamp"] for e in events if e["kind"] in NEW_MAP])
@@ -87,7 +87,7 @@ def table(cells: list[dict]) -> str:
     for cell in cells:
         groups[(cell["sequence"], cell["method"])].append(cell)
     methods = list(dict.fromkeys(cell["method"] for cell in cells))
-    sequences = list(dict.fromkeys(cell["sequence"] for cell in cells))
+    sequences = sorted(dict.fromkeys(cell["sequence"] for cell in cells), key=_folder_and_stride)
     best = {sequence: min((_median([c["ate"] for c in groups[(sequence, m)]]) for m in methods
                            if groups.get((sequence, m))), default=None, key=lambda v: np.inf if v is None else v)
             for sequence in sequences}
@@ -103,10 +103,10 @@ def table(cells: list[dict]) -> str:
             over = [c for c in runs if c["ate"] is not None and best[sequence] is not None
                     and c["ate"] > SILENT_ATE_FACTOR * best[sequence] and not c["reported"]]
             silent = sum(c["silent_stretches"] for c in runs) + len(over)
-            base = sequence.split(".stride")[0]
-            peers = PEERS.get(base) if base == sequence and method == methods[0] else None
+            folder, stride = _folder_and_stride(sequence)
+            peers = PEERS.get(folder) if stride == 1 and method == methods[0] else None
             lines.append("| " + " | ".join([
-                sequence.replace(".stride", " (") + (")" if ".stride" in sequence else ""), method, _ate(ates),
+                f"{folder} ({stride})", method, _ate(ates),
                 f"{_median([c['posed'] for c in runs]):.0f}/{runs[0]['frames']}",
                 _number(_median([c["first_pose"] for c in runs])), _number(_median([c["failures"] for c in runs])),
                 _number(_median([c["recoveries"] for c in runs])),
@@ -114,6 +114,12 @@ def table(cells: list[dict]) -> str:
                 f"{peers[0]} on {peers[1]} / {peers[2]} on {peers[3]}" if peers else "",
             ]) + " |")
     return "\n".join(lines)
+
+
+def _folder_and_stride(sequence: str) -> tuple[str, int]:
+    """A bench sequence's folder and stride (NAME.strideK, fdmo bench's naming): each folder's strides together."""
+    folder, _, stride = sequence.partition(".stride")
+    return folder, int(stride or 1)
 
 
 def _median(values: list) -> float | None:
