@@ -113,6 +113,17 @@ def test_the_real_data_matrix_covers_every_folder_at_three_strides():
     assert set(matrix.methods) == {"fdmo", "direct", "features"} and len(matrix.seeds) == 3
 
 
+def test_a_run_that_never_posed_a_frame_is_left_out_of_the_trajectories_plot(tmp_path):
+    """A static camera never starts (EuRoC V1 01's first seconds): its trajectory.tum has a header and no line, and
+    the bench's report still draws the others."""
+    from app.bench.report import trajectories_plot
+
+    (tmp_path / "trajectory.tum").write_text("# timestamp tx ty tz qx qy qz qw\n")
+    row = {"task": "run", "setting": "default", "status": OK, "sequence": "static", "method": "fdmo", "seed": 0,
+           "folder": str(tmp_path), "tracked_fraction": 0.0}
+    assert trajectories_plot([row]) is not None
+
+
 def test_the_bundled_sequence_is_named_by_a_word():
     matrix = load_matrix(REPOSITORY / "configs" / "bench" / "smoke.yaml")
     assert [sequence.source for sequence in matrix.sequences] == [str(DEFAULT_SEQUENCE)]

@@ -133,11 +133,13 @@ def trajectories_plot(rows: list[dict[str, Any]]):
     from app.plot import AXES, position_errors, read_run, view_axes
 
     first = (rows[0]["task"], rows[0]["setting"])
-    shown = [row for row in rows if (row["task"], row["setting"]) == first and row["status"] == OK]
+    shown = [row for row in rows if (row["task"], row["setting"]) == first and row["status"] == OK
+             and row.get("tracked_fraction")]  # a run that never posed a frame (a static camera) has nothing to draw
     sequences = list(dict.fromkeys(row["sequence"] for row in shown))
-    columns = min(3, len(sequences))
-    canvas = figure(5 * columns, 4.5 * -(-len(sequences) // columns))
-    panels = np.atleast_1d(canvas.subplots(-(-len(sequences) // columns), columns)).ravel()
+    columns = max(1, min(3, len(sequences)))
+    rows_of_panels = max(1, -(-len(sequences) // columns))
+    canvas = figure(5 * columns, 4.5 * rows_of_panels)
+    panels = np.atleast_1d(canvas.subplots(rows_of_panels, columns)).ravel()
     for panel, sequence in zip(panels, sequences):
         drawn = set()
         for row in (row for row in shown if row["sequence"] == sequence):
