@@ -76,8 +76,9 @@ def test_the_quick_start_run_as_written_leaves_an_editable_install_working(tmp_p
     first_cache = tmp_path / "cache"
 
     _pip(python, "install", "--no-deps", str(_copy_of_the_sources(tmp_path / "source")), env=env)
-    first_run = subprocess.run([str(fdmo), "run", "--no-rrd"], cwd=work, env={**env, "XDG_CACHE_HOME": str(first_cache)},
-                               capture_output=True, text=True, timeout=600)
+    first_run = subprocess.run([str(fdmo), "run", "--no-rrd"], cwd=work,
+                               env={**env, "XDG_CACHE_HOME": str(first_cache)}, capture_output=True, text=True,
+                               timeout=600)
     assert first_run.returncode == 0, first_run.stderr
     assert list((first_cache / "fdmo" / "numba").rglob("*.nbi")), "the kernels were not cached in the user cache"
     assert not list((site_packages / "vo_core").rglob("*.nb[ic]")), "kernels were cached inside the package"
