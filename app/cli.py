@@ -443,10 +443,10 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
-    lines.append(f"  results in {out_dir}")
     if recording is not None and not _has_display():
         # `rerun FILE` opens a window: without a display it fails (winit's EventLoopError).
         lines.append(f"  no display here: rerun --serve-web {recording} shows the recording in a browser")
+    lines.append(f"  results in {out_dir}")  # last, as scripts read it
     return "\n".join(lines)
 
 
