@@ -52,11 +52,13 @@ def test_the_installed_wheel_opens_the_bundled_sequence_outside_the_repository(w
     own = subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], check=True,
                          capture_output=True, text=True).stdout.strip()
     (Path(own) / "dependencies_here.pth").write_text("\n".join(site.getsitepackages()) + "\n")
-    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True, timeout=300)
+    env = _without_our_settings(os.environ)  # a PYTHONPATH to a checkout would hide the installed wheel
+    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True, timeout=300,
+                   env=env)
     opened = subprocess.run(
         [str(python), "-c", "from vo_core.datasets import DEFAULT_SEQUENCE, open_sequence; "
                             "print(DEFAULT_SEQUENCE); print(len(open_sequence(DEFAULT_SEQUENCE)))"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert opened.returncode == 0, opened.stderr
     location, frames = opened.stdout.split()
     assert location.startswith(str(environment)) and frames == "80"
