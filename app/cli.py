@@ -12,8 +12,8 @@
     fdmo bench MATRIX.yaml [--workers N] [--ray auto|ADDRESS] [--out DIR] [--retry-failed]
 
 Exit code 0 on success, 2 with a one-line message on bad input (never a traceback), 130 when interrupted by Ctrl-C
-(SIGINT) and 143 by SIGTERM, 141 when the reader of the output went away (``fdmo info X | head``): app/exit_codes.py. The viewers and matplotlib are imported only
-when asked for, so a headless run never loads viser.
+(SIGINT) and 143 by SIGTERM, 141 when the reader of the output went away (``fdmo info X | head``): app/exit_codes.py.
+The viewers and matplotlib are imported only when asked for, so a headless run never loads viser.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from app.exit_codes import EXIT_BAD_INPUT, EXIT_BROKEN_PIPE, EXIT_INTERRUPTED, EXIT_OK, exit_code_of_signal
-from app.kernel_build import watch_kernel_builds
+from app.kernel_build import kernel_builds_announced
 from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from app.process_start import MAPPING_MODES, mapping_mode
@@ -225,11 +225,15 @@ def _end_process(code: int) -> NoReturn:
 
 
 def _run_command(args: argparse.Namespace) -> int:
+    with kernel_builds_announced(None if args.quiet else _announce_kernel_build):
+        return _run_source(args)
+
+
+def _run_source(args: argparse.Namespace) -> int:
     from app.live import LiveCamera, LivePlayer, live_device, live_undistorter
     from app.pipeline import check_method, open_source
     from app.player import Player
 
-    watch_kernel_builds(announce=None if args.quiet else _announce_kernel_build)
     device = None if args.source is None else live_device(args.source)
     if device is not None:
         _check_live_options(args)
@@ -464,10 +468,10 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
-    lines.append(f"  results in {out_dir}")
     if recording is not None and not _has_display():
         # `rerun FILE` opens a window: without a display it fails (winit's EventLoopError).
         lines.append(f"  no display here: rerun --serve-web {recording} shows the recording in a browser")
+    lines.append(f"  results in {out_dir}")  # last, as scripts read it
     return "\n".join(lines)
 
 

@@ -145,13 +145,17 @@ def account_frames(played: list[tuple[int, float]], posed_times: np.ndarray, eve
                    blind: set[int] = frozenset()) -> FrameAccount:
     """For each played frame (index, timestamp): posed (a trajectory line at its time), or the reason the events
     give: dropped (inside a frames_dropped range), skipped, repeated, lost (tracking or recovery failed, divergence),
-    initializing (from initialization_started until the next pose); else unexplained."""
+    initializing (from initialization_started until the next pose, other than the start's own first frame); else
+    unexplained."""
     kinds_at: dict[int, set[str]] = {}
     dropped: set[int] = set()
     for event in events:
         kinds_at.setdefault(event["frame"], set()).add(event["kind"])
         if event["kind"] == EventKind.FRAMES_DROPPED.value:
             dropped.update(range(event["details"]["first_frame"], event["details"]["last_frame"] + 1))
+    # A start's first frame is posed when the start succeeds, frames later: its pose ends no initialization.
+    first_frames = {event["details"].get("first_frame") for event in events
+                    if event["kind"] == EventKind.INITIALIZATION_SUCCEEDED.value}
     account = FrameAccount()
     posed_times = np.sort(posed_times)
     initializing = False
@@ -161,7 +165,7 @@ def account_frames(played: list[tuple[int, float]], posed_times: np.ndarray, eve
             kinds & {EventKind.INITIALIZATION_SUCCEEDED.value, EventKind.DIRECT_RESTARTED.value})
         if _contains(posed_times, timestamp):
             account.posed += 1
-            initializing = False
+            initializing = initializing and index in first_frames
             # --method direct keeps a diverged pose as DSO would, but says so: reported, not silent.
             if index in blind and EventKind.DIVERGENCE_DETECTED.value not in kinds:
                 account.blind_poses.append(index)

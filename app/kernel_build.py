@@ -5,9 +5,10 @@ over ``playing_clock``, a monotonic clock that stands still while a kernel is bu
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 from numba.core import event
 
@@ -64,16 +65,24 @@ class _Listener(event.Listener):
 _builds: KernelBuilds | None = None
 
 
-def watch_kernel_builds(announce: Callable[[], None] | None = None) -> KernelBuilds:
-    """Times the process's kernel builds from now on (the listener is registered once per process); ``announce``
-    is called at the next build, once."""
+def watch_kernel_builds() -> KernelBuilds:
+    """Times the process's kernel builds from now on (the listener is registered once per process)."""
     global _builds
     if _builds is None:
         _builds = KernelBuilds()
         event.register(COMPILE_EVENT, _Listener(_builds))
-    if announce is not None:
-        _builds.announce = announce
     return _builds
+
+
+@contextlib.contextmanager
+def kernel_builds_announced(announce: Callable[[], None] | None) -> Iterator[KernelBuilds]:
+    """Within the block, ``announce`` is called at the first kernel build, once (None: nothing is said)."""
+    builds = watch_kernel_builds()
+    builds.announce = announce
+    try:
+        yield builds
+    finally:
+        builds.announce = None
 
 
 def kernel_build_seconds() -> float:

@@ -410,7 +410,8 @@ def test_a_signal_ends_the_run_after_the_current_frame_with_a_summary_and_128_pl
     scripted[1]["at_frame"] = {6: lambda: os.kill(os.getpid(), signum)}
     out = tmp_path / "results"
     code, stdout, stderr = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd")
-    assert code == {signal.SIGINT: 130, signal.SIGTERM: 143}[signum] and stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
+    assert code == {signal.SIGINT: 130, signal.SIGTERM: 143}[signum]
+    assert stderr.strip().endswith(f"fdmo: interrupted; results in {out}")
     assert scripted[0][-1].seen == list(range(7))  # frame 6, during which the signal came, was finished
     assert "(fdmo, interrupted): tracked 5/7 frames" in stdout
     metrics = json.loads((out / "metrics.json").read_text())

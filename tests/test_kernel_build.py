@@ -11,7 +11,7 @@ import pytest
 
 import vo_core.system
 from app.cli import main
-from app.kernel_build import KernelBuilds, kernel_build_seconds, playing_clock, watch_kernel_builds
+from app.kernel_build import KernelBuilds, kernel_build_seconds, kernel_builds_announced, playing_clock
 from test_cli import ScriptedFrontEnd, dataset  # noqa: F401 (dataset: the fixture, a tiny VAMR folder)
 
 
@@ -57,13 +57,14 @@ def fresh_kernel():
 
 def test_a_real_build_is_timed_and_the_playing_clock_stands_still_meanwhile():
     said = []
-    watch_kernel_builds(announce=lambda: said.append(True))
-    before, clock_before = kernel_build_seconds(), playing_clock()
-    wall_before = time.monotonic()
-    assert fresh_kernel()(np.arange(4.0)) == 14.0
-    built = kernel_build_seconds() - before
+    with kernel_builds_announced(lambda: said.append(True)):
+        before, clock_before = kernel_build_seconds(), playing_clock()
+        wall_before = time.monotonic()
+        assert fresh_kernel()(np.arange(4.0)) == 14.0
+        built = kernel_build_seconds() - before
+        assert playing_clock() - clock_before == pytest.approx(time.monotonic() - wall_before - built, abs=0.01)
+    fresh_kernel()(np.arange(4.0))  # built after the block: not announced
     assert built > 0.0 and said == [True]
-    assert playing_clock() - clock_before == pytest.approx(time.monotonic() - wall_before - built, abs=0.01)
 
 
 def test_a_run_that_builds_a_kernel_says_so_once_and_leaves_it_out_of_the_fps(dataset, tmp_path, capsys,

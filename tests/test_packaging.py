@@ -52,11 +52,13 @@ def test_the_installed_wheel_opens_the_bundled_sequence_outside_the_repository(w
     own = subprocess.run([str(python), "-c", "import site; print(site.getsitepackages()[0])"], check=True,
                          capture_output=True, text=True).stdout.strip()
     (Path(own) / "dependencies_here.pth").write_text("\n".join(site.getsitepackages()) + "\n")
-    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True, timeout=300)
+    env = _without_our_settings(os.environ)  # a PYTHONPATH to a checkout would hide the installed wheel
+    subprocess.run([str(python), "-m", "pip", "install", "--no-deps", "-q", str(wheel)], check=True, timeout=300,
+                   env=env)
     opened = subprocess.run(
         [str(python), "-c", "from vo_core.datasets import DEFAULT_SEQUENCE, open_sequence; "
                             "print(DEFAULT_SEQUENCE); print(len(open_sequence(DEFAULT_SEQUENCE)))"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert opened.returncode == 0, opened.stderr
     location, frames = opened.stdout.split()
     assert location.startswith(str(environment)) and frames == "80"
@@ -76,8 +78,9 @@ def test_the_quick_start_run_as_written_leaves_an_editable_install_working(tmp_p
     first_cache = tmp_path / "cache"
 
     _pip(python, "install", "--no-deps", str(_copy_of_the_sources(tmp_path / "source")), env=env)
-    first_run = subprocess.run([str(fdmo), "run", "--no-rrd"], cwd=work, env={**env, "XDG_CACHE_HOME": str(first_cache)},
-                               capture_output=True, text=True, timeout=600)
+    first_run = subprocess.run([str(fdmo), "run", "--no-rrd"], cwd=work,
+                               env={**env, "XDG_CACHE_HOME": str(first_cache)}, capture_output=True, text=True,
+                               timeout=600)
     assert first_run.returncode == 0, first_run.stderr
     assert list((first_cache / "fdmo" / "numba").rglob("*.nbi")), "the kernels were not cached in the user cache"
     assert not list((site_packages / "vo_core").rglob("*.nb[ic]")), "kernels were cached inside the package"
