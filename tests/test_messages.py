@@ -17,7 +17,7 @@ from vo_core.errors import InputError
 def tracking_after(intervals_missed: float | None) -> DirectTracking:
     """A converged alignment whose image moved 20x the last frames' median, after a gap or none."""
     return DirectTracking(reference=None, result=SimpleNamespace(success=True, rmse_after=9.0), rmse_before=10.0,
-                          achieved_rmse=np.array([9.0]), last_rmse=8.0, good_enough=True, hypotheses_tried=1,
+                          rmse_end=9.0, saturated_end=0.1, achieved_rmse=np.array([9.0]), last_rmse=8.0, good_enough=True, hypotheses_tried=1,
                           from_prior=False, ms=1.0, intervals_missed=intervals_missed, image_motion_px=200.0,
                           typical_motion_px=10.0)
 
