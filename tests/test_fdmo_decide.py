@@ -126,7 +126,10 @@ ROWS = [
     Row("DSO's retrack threshold alone (no jump): the direct pose stands unverified (4 % of teddy's frames)",
         Evidence(NO_HYPOTHESIS, NOTHING), Outcome.ACCEPT_UNVERIFIED, details={
             "why": "the feature map does not recognize this view, and does not contradict the direct pose"}),
-    Row("a feature pose that agrees but is no recovery confirms nothing: after a jump off the prediction, not kept",
+    Row("a feature pose that agrees but is no recovery confirms a pose that may stand unconfirmed",
+        Evidence(NO_HYPOTHESIS, FeatureEvidence(False, FeaturePose(25, 0.04, 0.9))),
+        Outcome.ACCEPT, details={"explained": 0.9, "agreed": True}),
+    Row("... but does not spare it the gap rule: after a jump off the prediction, not kept",
         Evidence(gap(11), FeatureEvidence(False, FeaturePose(25, 0.04, 0.9)),
                  PriorEvidence(STEADY, direct=Motion(200.0, 20.0, 180.0))),
         Outcome.LOST,
