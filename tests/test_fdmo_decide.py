@@ -1,9 +1,14 @@
-"""FDMO's decision about a frame direct tracking did not trust (vo_core/fdmo/decide.py), as a table: each row is the
-evidence of a recorded case (or the boundary beside one), written as numbers, and the decision the system takes on it:
-the outcome, what is appended to the divergence test's reason where the direct pose is not kept, the check's measures
-for the event where it is kept, and why a recovered pose is refused. The system's defaults throughout (agreement
-0.8, overrule share 10 %, gap motion share 0.5, prior reliability 0.25, a jump 5 intervals; a recovery 30 inliers and
-5 %, a search around the estimate 10 %).
+"""FDMO's decisions (vo_core/fdmo/decide.py) as tables of recorded cases (or the boundary beside one), each row its
+evidence written as numbers and the decision the system takes on it.
+
+decide(), about a frame direct tracking did not trust: the outcome, what is appended to the divergence test's reason
+where the direct pose is not kept, the check's measures for the event where it is kept, and why a recovered pose is
+refused. after_recovery(), back to direct from a recovered pose: resume the window (with which alignment, and why),
+restart the direct map (at which pose, with how many feature depths), or feature tracking.
+
+The system's defaults throughout (agreement 0.8, overrule share 10 %, gap motion share 0.5, prior reliability 0.25, a
+jump 5 intervals; a recovery 30 inliers and 5 %, a search around the estimate 10 %; the same optimum within 1 px,
+elsewhere under 20 % explained, a restart 50 points seen by 3 keyframes).
 """
 
 from __future__ import annotations
@@ -14,9 +19,9 @@ import pytest
 
 from vo_core.config import Config
 from vo_core.direct.divergence import Verdict
-from vo_core.fdmo.decide import Decision, Outcome, decide
-from vo_core.fdmo.evidence import (DirectEvidence, Evidence, FeatureEvidence, FeaturePose, Motion, PriorEvidence,
-                                   Search)
+from vo_core.fdmo.decide import Continuation, Decision, Next, Outcome, after_recovery, decide
+from vo_core.fdmo.evidence import (Alignment, DirectEvidence, Evidence, FeatureEvidence, FeaturePose, Motion,
+                                   PriorEvidence, RecoveredEvidence, Search)
 
 CONFIG = Config()
 REASON = "the divergence test's reason"
@@ -204,3 +209,78 @@ def test_decide_changes_nothing_and_answers_alike():
     with pytest.raises(dataclasses.FrozenInstanceError):
         row.evidence.direct.reason = "changed"  # type: ignore[misc]
     assert decide(row.evidence, CONFIG) == decide(row.evidence, CONFIG)
+
+
+# ---------------------------------------------------------------------------------------------- after a recovery
+
+def aligned(rmse: float) -> Alignment:
+    return Alignment(True, rmse)
+
+
+DIVERGED_ALIGNMENT = Alignment(False, float("nan"))
+
+
+@dataclasses.dataclass(frozen=True)
+class After:
+    name: str
+    evidence: RecoveredEvidence
+    continuation: Continuation
+
+
+TOO_FEW = ("{} of the feature points in view are seen by 3 keyframes or more: too few to restart from (the better fit "
+           "of the two alignments goes on)")
+AFTER = [
+    # Teddy played forward and back: at three recoveries both alignments met 0.4-0.6 cm from the truth, the feature
+    # poses were 0.6-2 cm off and the direct pose explained only 29-59 % of their inliers.
+    After("both alignments reach the same optimum: the window goes on (teddy forward and back)",
+          RecoveredEvidence(0.14, aligned(12.0), aligned(11.5), 0.29, 0.4, 0.5, 200, 200),
+          Continuation(Next.RESUME, "retracked", "both alignments reached the same optimum")),
+    After("the same optimum is within 1 px (beyond, the better fit restarts the map)",
+          RecoveredEvidence(0.14, aligned(12.0), aligned(11.5), 0.29, 0.4, 1.01, 200, 200),
+          Continuation(Next.RESTART, points=200)),
+    # Teddy, 13 frames missed right after the start: the optima 1.3 px apart, RMSE 13.62 against the motion model's
+    # 13.59, 75 points from the start's 3-frame baseline; a restart collapsed the scale 10x (0.135 m against 0.006 m).
+    After("the alignment from the recovered pose fits no better: the motion model's goes on (teddy, after the start)",
+          RecoveredEvidence(0.12, aligned(13.59), aligned(13.62), 0.72, 0.85, 1.3, 75, 75),
+          Continuation(Next.RESUME, "direct", "the alignment from the recovered pose fits the images no better than "
+                                              "the motion model's")),
+    # Teddy, 20 frames dropped at 100: the motion model's alignment RMSE 13.2 against 12.1 from the recovered pose;
+    # ATE 0.017 m in the same window, 0.009 m restarted.
+    After("it fits better: the map restarts at it where it agrees with the feature map (teddy 100:20)",
+          RecoveredEvidence(0.13, aligned(13.2), aligned(12.1), 0.41, 0.9, 6.0, 70, 90),
+          Continuation(Next.RESTART, refined=True, points=90)),
+    After("... at the recovered pose where it does not",
+          RecoveredEvidence(0.13, aligned(13.2), aligned(12.1), 0.41, 0.6, 6.0, 70, 90),
+          Continuation(Next.RESTART, points=70)),
+    # Parking played back 70 frames: the motion model's alignment 10.9 m off at RMSE 12.88 explained none of the
+    # recovery's 340 inliers, the one from the recovered pose 13.22; kept, the frame was 10.9 m off.
+    After("a conclusive recovery puts the camera elsewhere: the better fit is no reason to go on (parking, 70 back)",
+          RecoveredEvidence(0.3, aligned(12.88), aligned(13.22), 0.0, 0.5, 400.0, 340, 120),
+          Continuation(Next.RESTART, points=340)),
+    After("... an inconclusive one (under 10 % in view) does not",
+          RecoveredEvidence(0.08, aligned(12.88), aligned(13.22), 0.0, 0.5, 400.0, 340, 120),
+          Continuation(Next.RESUME, "direct", "the alignment from the recovered pose fits the images no better than "
+                                              "the motion model's")),
+    After("too few feature depths to restart from: the better fit of the two goes on",
+          RecoveredEvidence(0.13, aligned(13.2), aligned(12.1), 0.41, 0.6, 6.0, 49, 90),
+          Continuation(Next.RESUME, "retracked", TOO_FEW.format(49), points=49)),
+    After("... but not the motion model's alignment where the recovery puts the camera elsewhere",
+          RecoveredEvidence(0.3, aligned(12.0), DIVERGED_ALIGNMENT, 0.1, None, None, 20, None),
+          Continuation(Next.FEATURE_TRACKING, points=20)),
+    After("... which goes on where it is not elsewhere",
+          RecoveredEvidence(0.3, aligned(12.0), DIVERGED_ALIGNMENT, 0.5, None, None, 20, None),
+          Continuation(Next.RESUME, "direct", TOO_FEW.format(20), points=20)),
+    After("no direct alignment (feature tracking, a scale jump): a restart with 50 feature depths",
+          RecoveredEvidence(0.2, restart_points=50), Continuation(Next.RESTART, points=50)),
+    After("... and feature tracking with fewer",
+          RecoveredEvidence(0.2, restart_points=49), Continuation(Next.FEATURE_TRACKING, points=49)),
+]
+
+
+@pytest.mark.parametrize("row", AFTER, ids=[row.name for row in AFTER])
+def test_after_recovery(row):
+    assert after_recovery(row.evidence, CONFIG) == row.continuation
+
+
+def test_every_continuation_has_a_row():
+    assert {row.continuation.next for row in AFTER} == set(Next)

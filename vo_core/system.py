@@ -45,8 +45,8 @@ from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.features.config import FeatureConfig
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
-from vo_core.fdmo.decide import Decision, Outcome, decide
-from vo_core.fdmo.evidence import Evidence, gather
+from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide
+from vo_core.fdmo.evidence import Evidence, gather, gather_recovered
 from vo_core.front_ends import IMPLEMENTED_METHODS, make_front_end  # noqa: F401 (app reads IMPLEMENTED_METHODS here)
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
@@ -477,13 +477,11 @@ class Odometry:
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
                        result: FrameResult) -> None:
-        """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window.
-        Where that ends where the motion model's alignment (``direct``) ended, two starts found the same optimum:
-        the direct pose was right, and tracking goes on in the same window at the same scale. Where it ends elsewhere
-        but fits the images no better, there is no lock to leave either: the motion model's pose goes on in the same
-        window. Otherwise the direct map restarts at the recovered pose (refined by the alignment where it converged
-        and agrees with the feature map) with the depths of the feature points in view, so that it goes on at the
-        feature map's scale; feature tracking while too few of them are in view.
+        """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window
+        (``retracked``), the feature map says how that and the motion model's alignment (``direct``, where there was
+        one) compare with the recovery, fdmo/decide.after_recovery chooses (the same window goes on with one of them,
+        the direct map restarts at the recovered pose with the feature points' depths, or feature tracking), and
+        this carries it out.
 
         Why restart where the alignment from the recovered pose fits better: the motion model's had locked onto a
         worse optimum, so the window's points fit the new view poorly, and carrying its scale through them drifted it
@@ -493,37 +491,25 @@ class Odometry:
         feature map's depths (teddy, 13 frames missed right after the start, live under load: 75 points from the
         start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
         map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
-        T_world_cam, refined = outcome.T_world_cam, False
-        # Whether the recovery puts the camera elsewhere than the motion model's alignment: asked once, for both the
-        # window going on with that alignment and the fallback below.
-        direct_elsewhere = direct is not None and direct.converged and self._elsewhere(outcome, direct)
+        retracked = None
         if direct is not None:
-            tracking = self.direct.track(frame, T_world_cam)
-            result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
-            resumed = self._resumed_alignment(outcome, direct, tracking, direct_elsewhere)
-            if resumed is not None:
-                self._resume_window(frame, outcome, direct, tracking, *resumed, result)
-                return
-            refined = tracking.converged and self.features.explained(
-                outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
-            T_world_cam = tracking.T_world_cam if refined else T_world_cam
-        min_observations = self.config.fdmo.min_restart_observations
-        uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam, min_observations)
-        if len(uv) >= self.config.fdmo.min_restart_points:
-            fits = _alignment_fits(direct, tracking) if direct is not None else {}
+            retracked = self.direct.track(frame, outcome.T_world_cam)
+            result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + retracked.ms
+        choice = after_recovery(gather_recovered(self.features, outcome, direct, retracked, self.config), self.config)
+        if choice.next is Next.RESUME:
+            alignment = direct if choice.alignment == "direct" else retracked
+            self._resume_window(frame, outcome, direct, retracked, alignment, choice.why, result)
+            return
+        T_world_cam = retracked.T_world_cam if choice.refined else outcome.T_world_cam
+        if choice.next is Next.RESTART:
+            uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam,
+                                                              self.config.fdmo.min_restart_observations)
+            fits = _alignment_fits(direct, retracked) if direct is not None else {}
             _emit(result, EventKind.DIRECT_RESTARTED,
-                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined,
+                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": choice.refined,
                    **fits})
             self.mode = _Mode.DIRECT
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
-            return
-        converged = [] if direct is None else [
-            a for a in (direct, tracking) if a.converged and not (a is direct and direct_elsewhere)]
-        if converged:  # the window's points, however weak here, against depths the feature map has not settled
-            why = (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or more: too few "
-                   "to restart from (the better fit of the two alignments goes on)")
-            self._resume_window(frame, outcome, direct, tracking, min(converged, key=lambda a: a.rmse_after), why,
-                                result)
             return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
 
@@ -536,39 +522,6 @@ class Odometry:
                "last_rmse": rounded_rmse(alignment.last_rmse), "stage": outcome.stage, "why": why,
                **_alignment_fits(direct, retracked)})
         self._accept(frame, alignment, result)
-
-    def _resumed_alignment(self, outcome, direct: DirectTracking, retracked: DirectTracking,
-                           direct_elsewhere: bool) -> tuple[DirectTracking, str] | None:
-        """The alignment the same window goes on with after a recovery, and why; None where the map restarts.
-        ``direct_elsewhere``: the recovery puts the camera elsewhere than the motion model's alignment does."""
-        if not (direct.converged and retracked.converged):
-            return None
-        if self._same_optimum(outcome, direct, retracked):
-            return retracked, "both alignments reached the same optimum"
-        if retracked.rmse_after < direct.rmse_after or direct_elsewhere:
-            return None  # the motion model's alignment locked onto a worse optimum, or is at another place
-        return direct, "the alignment from the recovered pose fits the images no better than the motion model's"
-
-    def _elsewhere(self, outcome, alignment: DirectTracking) -> bool:
-        """Whether a conclusive recovery puts the camera at another place than ``alignment`` does: the alignment
-        explains almost none of its inliers (``fdmo.elsewhere_share``). Its fit, however good, is then no reason to
-        keep it: where the window does not see the place the camera is at, no alignment fits it well (parking
-        played back 70 frames: the motion model's alignment 10.9 m off at RMSE 12.88, explaining none of the
-        recovery's 340 inliers; the one from the recovered pose 13.22; kept, the frame was 10.9 m off, reported as
-        recovered). Where the motion model's alignment was right and the feature pose off by the map's own error,
-        it explained most of them (teddy, 13 frames missed after the start: 72 %)."""
-        fdmo = self.config.fdmo
-        return (outcome.pose.found_fraction >= fdmo.overrule_share and self.features.explained(
-            outcome.pose, alignment.T_world_cam, outcome.features) < fdmo.elsewhere_share)
-
-    def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
-        """Whether the alignment from the recovered pose ended where the motion model's did (within
-        ``same_optimum_px`` on the recovery's inliers). Two starts that reach one optimum confirm it; the feature
-        pose then differs from it by the feature map's own error, which the images resolve better (teddy played
-        forward and back: at three recoveries both alignments met 0.4-0.6 cm from the truth, the feature poses
-        were 0.6-2 cm off and the direct pose explained only 29-59 % of their inliers)."""
-        shift_px = self.features.reprojection_shift(outcome.pose, direct.T_world_cam, retracked.T_world_cam)
-        return shift_px <= self.config.fdmo.same_optimum_px
 
     def _track_features(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the

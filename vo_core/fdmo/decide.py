@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 from vo_core.direct.divergence import Verdict
-from vo_core.fdmo.evidence import Evidence, Motion
+from vo_core.fdmo.evidence import Evidence, Motion, RecoveredEvidence
 
 
 class Outcome(Enum):
@@ -202,3 +202,56 @@ def _strays(off: Motion, config) -> bool:
     """The gap rule: the pose lies further from the predicted one than ``gap_motion_share`` of the predicted image
     motion."""
     return off.apart_px > config.fdmo.gap_motion_share * off.predicted_px
+
+
+# ---------------------------------------------------------------------------------------------- after a recovery
+
+
+class Next(Enum):
+    RESUME = "resume"  # the same window goes on, with Continuation.alignment
+    RESTART = "restart"  # the direct map restarts at the recovered pose (refined where Continuation.refined)
+    FEATURE_TRACKING = "feature_tracking"  # the frame gets the feature pose; feature tracking takes the next frames
+
+
+@dataclass(frozen=True)
+class Continuation:
+    next: Next
+    alignment: str | None = None  # RESUME: "direct" (the motion model's) or "retracked" (from the recovered pose)
+    why: str = ""  # RESUME: why the window goes on
+    refined: bool = False  # the alignment from the recovered pose agrees with the feature map: the pose to go on from
+    points: int = 0  # the restart's feature points (at the pose it goes on from)
+
+
+def after_recovery(evidence: RecoveredEvidence, config) -> Continuation:
+    """Back to direct from a recovered pose (FDMO 4.2.2). Where the alignment from the recovered pose ends where the
+    motion model's ended (``fdmo.same_optimum_px``), two starts found the same optimum and the same window goes on;
+    where it ends elsewhere but fits the images no better, there is no lock to leave: the motion model's alignment goes
+    on. Unless the recovery puts the camera elsewhere than the motion model's alignment (it explains under
+    ``fdmo.elsewhere_share`` of a conclusive recovery's inliers), which is then not kept. Otherwise the direct map
+    restarts at the recovered pose (at the alignment from it where that agrees with the feature map,
+    ``fdmo.agreement``) with ``fdmo.min_restart_points`` feature depths or more; with fewer, the better fit of the
+    converged alignments goes on; with none, feature tracking."""
+    fdmo = config.fdmo
+    direct, retracked = evidence.direct, evidence.retracked
+    elsewhere = (direct is not None and direct.converged and evidence.found_fraction >= fdmo.overrule_share
+                 and evidence.direct_explained < fdmo.elsewhere_share)
+    if direct is not None and direct.converged and retracked.converged:
+        if evidence.shift_px <= fdmo.same_optimum_px:
+            return Continuation(Next.RESUME, "retracked", "both alignments reached the same optimum")
+        if not (retracked.rmse_after < direct.rmse_after or elsewhere):
+            return Continuation(Next.RESUME, "direct",
+                                "the alignment from the recovered pose fits the images no better than the motion "
+                                "model's")
+    refined = (retracked is not None and retracked.converged
+               and evidence.retracked_explained >= fdmo.agreement)
+    points = evidence.restart_points_retracked if refined else evidence.restart_points
+    if points >= fdmo.min_restart_points:
+        return Continuation(Next.RESTART, refined=refined, points=points)
+    converged = [(name, a) for name, a in (("direct", direct), ("retracked", retracked))
+                 if a is not None and a.converged and not (name == "direct" and elsewhere)]
+    if converged:  # the window's points, however weak here, against depths the feature map has not settled
+        name = min(converged, key=lambda named: named[1].rmse_after)[0]
+        why = (f"{points} of the feature points in view are seen by {fdmo.min_restart_observations} keyframes or "
+               "more: too few to restart from (the better fit of the two alignments goes on)")
+        return Continuation(Next.RESUME, name, why, refined, points)
+    return Continuation(Next.FEATURE_TRACKING, refined=refined, points=points)

@@ -148,3 +148,58 @@ def gather(features, camera: PinholeCamera, tracking: DirectTracking, judgement:
     direct = DirectEvidence(judgement.verdict, judgement.reason, judgement.jump, tracking.good_enough,
                             tracking.rmse_after, tracking.last_rmse, tracking.intervals_missed)
     return Evidence(direct, feature_evidence, prior)
+
+
+# ---------------------------------------------------------------------------------------------- after a recovery
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """A direct alignment of the frame: whether it converged, and its fit."""
+
+    converged: bool
+    rmse_after: float
+
+
+@dataclass(frozen=True)
+class RecoveredEvidence:
+    """What the halves say about going back to direct from a recovered pose (FDMO 4.2.2): the motion model's
+    alignment (``direct``) and the one from the recovered pose (``retracked``), None where there was no direct
+    alignment (feature tracking, a scale jump, an old map after a reinitialization); how they compare with the
+    recovery; and the feature points a restart would get its depths from."""
+
+    found_fraction: float  # the recovery's inliers per map point in view
+    direct: Alignment | None = None
+    retracked: Alignment | None = None
+    direct_explained: float | None = None  # the share of the recovery's inliers the motion model's alignment explains
+    retracked_explained: float | None = None  # ... and the one from the recovered pose
+    # How far apart the two alignments put the recovery's inliers (median pixels), where both converged.
+    shift_px: float | None = None
+    # Feature points in view, observed by fdmo.min_restart_observations keyframes or more, at the recovered pose and
+    # at the alignment from it (where it converged).
+    restart_points: int = 0
+    restart_points_retracked: int | None = None
+
+
+def gather_recovered(features, outcome, direct: DirectTracking | None, retracked: DirectTracking | None,
+                     config) -> RecoveredEvidence:
+    """The evidence about going back to direct from ``outcome``'s recovered pose: the feature half is asked how much of
+    the recovery each alignment explains, how far apart they put its inliers, and which of its points a restart could
+    take depths from at either pose."""
+    pose, frame = outcome.pose, outcome.features
+    min_observations = config.fdmo.min_restart_observations
+
+    def points_at(T_world_cam: np.ndarray) -> int:
+        return len(features.depths_in_view(pose, T_world_cam, min_observations)[0])
+
+    both = direct is not None and direct.converged and retracked.converged
+    converged_retracked = retracked is not None and retracked.converged
+    return RecoveredEvidence(
+        pose.found_fraction,
+        None if direct is None else Alignment(direct.converged, direct.rmse_after),
+        None if retracked is None else Alignment(retracked.converged, retracked.rmse_after),
+        features.explained(pose, direct.T_world_cam, frame) if direct is not None and direct.converged else None,
+        features.explained(pose, retracked.T_world_cam, frame) if converged_retracked else None,
+        features.reprojection_shift(pose, direct.T_world_cam, retracked.T_world_cam) if both else None,
+        points_at(outcome.T_world_cam),
+        points_at(retracked.T_world_cam) if converged_retracked else None)
