@@ -284,3 +284,32 @@ def test_after_recovery(row):
 
 def test_every_continuation_has_a_row():
     assert {row.continuation.next for row in AFTER} == set(Next)
+
+
+def test_gather_compares_only_a_suspect_direct_pose():
+    """A diverged or lost direct pose is not compared with the feature map's (a lost one has no pose at all): the
+    feature half is asked how much of its pose a direct pose explains only where that pose is suspect."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from vo_core.direct.divergence import Judgement
+    from vo_core.fdmo.evidence import gather
+
+    class Lost:
+        intervals_missed, good_enough, rmse_after, last_rmse = None, False, float("nan"), 8.0
+
+        @property
+        def T_world_cam(self):
+            raise AttributeError("a lost alignment has no pose")
+
+    asked = []
+    features = SimpleNamespace(explained=lambda pose, T, frame: asked.append(T) or 0.9)
+    pose = SimpleNamespace(num_inliers=40, found_fraction=0.2, T_world_cam=np.eye(4))
+    outcome = SimpleNamespace(pose=pose, features=None, succeeded=True, feature_deprived=False, around_estimate=None,
+                              T_world_cam=np.eye(4))
+    for verdict in (Verdict.LOST, Verdict.DIVERGED):
+        evidence = gather(features, None, Lost(), Judgement(verdict, float("nan"), 1.1, "why"), outcome, [], None,
+                          CONFIG)
+        assert evidence.features.pose == FeaturePose(40, 0.2, None) and not asked
+        assert decide(evidence, CONFIG).outcome is Outcome.RECOVER

@@ -37,7 +37,8 @@ class FeaturePose:
     inliers: int
     found_fraction: float  # inliers per map point in view
     # The share of its inlier matches the direct pose explains; None where the pose has fewer inliers than a RANSAC
-    # needs (features.recovery.min_ransac_inliers): it is then not compared with the direct one.
+    # needs (features.recovery.min_ransac_inliers), or the direct pose is not suspect (diverged or lost): they are
+    # then not compared.
     explained: float | None = None
 
 
@@ -130,17 +131,17 @@ def gather(features, camera: PinholeCamera, tracking: DirectTracking, judgement:
     they ``predicted`` for the frame). ``features`` (the feature half) is asked how much of its pose's matches the
     direct pose explains; ``config``: the system's."""
     pose = outcome.pose
+    suspect = judgement.verdict is Verdict.SUSPECT  # only a suspect direct pose (converged) is compared
     feature_pose = None
     if pose is not None:
         explained = None
-        if pose.num_inliers >= config.features.recovery.min_ransac_inliers:
+        if suspect and pose.num_inliers >= config.features.recovery.min_ransac_inliers:
             explained = features.explained(pose, tracking.T_world_cam, outcome.features)
         feature_pose = FeaturePose(pose.num_inliers, pose.found_fraction, explained)
     around = outcome.around_estimate
     feature_evidence = FeatureEvidence(
         outcome.succeeded, feature_pose, outcome.feature_deprived,
         None if around is None else Search(around.num_inliers, around.in_view))
-    suspect = judgement.verdict is Verdict.SUSPECT
     prior = PriorEvidence(
         prior_error(posed, tracking.intervals_missed, config.fdmo.min_prior_frames),
         against_prior(camera, tracking, posed, predicted, tracking.T_world_cam) if suspect else None,
