@@ -1,7 +1,8 @@
 """The odometry: one object that takes frames in order and emits results and events to its sinks.
 
-``Odometry.track`` runs FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves and decides;
-each half offers steps and decides nothing:
+``Odometry.track`` runs FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves: it gathers what they
+say about a frame (fdmo/evidence.py), has it decided (fdmo/decide.py, pure functions of that evidence) and carries the
+decision out (``_carry_out``, ``_continue_from``); each half offers steps and decides nothing:
 
     direct tracking from the motion model                  DirectOdometry.track (changes nothing)
     divergence test                                        direct/divergence.py: trusted, suspect, diverged, lost
@@ -265,6 +266,8 @@ class Odometry:
         return True
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
+        """Fig. 2: track directly and judge; a trusted frame is accepted, any other is decided on the feature map's
+        evidence (``_recover``: gather, decide, carry out), or by DSO's rules without a feature half."""
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
             if self._stands_beside_mapping(frame, tracking, judgement, result):

@@ -1,12 +1,15 @@
-"""FDMO's decision about a frame direct tracking did not trust: a pure function of the evidence (evidence.py) and the
-config. It changes nothing and asks no half; the system carries the decision out (Odometry._carry_out).
+"""FDMO's decisions, pure functions of the evidence (evidence.py) and the config: they change nothing and ask no half;
+the system carries them out. ``decide``: what becomes of a frame direct tracking did not trust (Odometry._carry_out);
+``after_recovery``: how tracking goes back to direct from a recovered pose (Odometry._continue_from).
 
     verdict suspect (the camera may have jumped, or no motion hypothesis fit as well as the last frame):
-        the feature map's pose, compared with the direct one (the share of its inliers the direct pose explains):
-            agrees (>= fdmo.agreement) and is a recovery                   ACCEPT (checked), unless it stayed behind
+        the feature map's pose (10+ inliers), compared with the direct one (the share of its inliers it explains):
+            agrees (>= fdmo.agreement)                                     ACCEPT (checked) where it is a recovery or
+                                                                           the direct pose may stand unconfirmed,
+                                                                           unless that stayed behind a reliable prior
             disagrees with a conclusive share of the points in view         not kept
             (fdmo.overrule_share)
-            is too weak either way                                         ACCEPT_UNVERIFIED where the direct pose
+            disagrees, too weak to overrule                                ACCEPT_UNVERIFIED where the direct pose
                                                                            may stand unconfirmed, else not kept
         no feature pose:
             the frame is feature-deprived                                  ACCEPT (checked, nothing to check with)
