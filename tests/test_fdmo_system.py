@@ -11,6 +11,8 @@ import pytest
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
+from vo_core.fdmo.decide import prior_reliable
+from vo_core.fdmo.evidence import prior_error
 from vo_core.synthetic import make_sequence
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory
@@ -346,6 +348,10 @@ def test_the_motion_prior_judges_a_gap_only_where_the_motion_has_been_predictabl
     odometry = Odometry(load_config(overrides=["method=fdmo"]), CAMERA)
     timestamps = np.arange(20) / 30.0
 
+    def reliable(tracking):  # the motion prior's evidence about the gap (fdmo/evidence.py), as decide.py reads it
+        error = prior_error(odometry.posed, tracking.intervals_missed, odometry.config.fdmo.min_prior_frames)
+        return prior_reliable(error, odometry.config)
+
     def posed(poses):
         return [(t, T) for t, T in zip(timestamps, poses)]
 
@@ -355,12 +361,12 @@ def test_the_motion_prior_judges_a_gap_only_where_the_motion_has_been_predictabl
     gap = type("Tracking", (), {})
     gap.intervals_missed = 10.0
     odometry.posed = posed(steady)
-    assert odometry._prior_reliable(gap)
+    assert reliable(gap)
     gap.intervals_missed = 1e4
-    assert not odometry._prior_reliable(gap)
+    assert not reliable(gap)
     gap.intervals_missed = 10.0
     shaken = [T.copy() for T in steady]
     for T, shake in zip(shaken, np.random.default_rng(2).normal(0.0, 0.02, (len(shaken), 3))):
         T[:3, 3] += shake  # 5 cm steps, 2 cm of shake: a hand (teddy: 0.27 of each step, median)
     odometry.posed = posed(shaken)
-    assert not odometry._prior_reliable(gap)
+    assert not reliable(gap)

@@ -5,6 +5,8 @@ TYPE_CHECKING), is checked against the arrows that hold:
 - the direct half and the feature half never import each other (what both need lives below them in geometry/:
   the motion model, corner detection and KLT tracking), nor anything above them (init, front ends, the system,
   the composed config);
+- the hybrid's decision (fdmo/) may import the direct and the feature half, and nothing above it (the system, the
+  front ends, init, the mapping threads); the halves and init never import it;
 - the initializers never import the KLT baseline, nor any front end, nor the system; they use the feature half
   in one place only, the start check's epipolar witness (ORB matches), which the registry hands to the direct half;
 - geometry imports nothing of ours but vo_core.compiled and vo_core.errors;
@@ -87,6 +89,11 @@ ARROWS = {
         ("vo_core.direct", "vo_core.features"), lambda name: within(name, *ABOVE_THE_HALVES)),
     "init never imports the KLT baseline, a front end or the system": (
         ("vo_core.init",), lambda name: within(name, "vo_core.klt", "vo_core.front_ends", "vo_core.system")),
+    "direct, features and init never import the hybrid's decision (fdmo)": (
+        ("vo_core.direct", "vo_core.features", "vo_core.init"), lambda name: within(name, "vo_core.fdmo")),
+    "fdmo imports the halves and what lies below them, never the system, a front end, init or the mapping threads": (
+        ("vo_core.fdmo",), lambda name: within(name, "vo_core.system", "vo_core.front_ends", "vo_core.klt",
+                                               "vo_core.init", "vo_core.mapping_thread")),
     "geometry imports nothing of ours but vo_core.compiled and vo_core.errors": (
         ("vo_core.geometry",),
         lambda name: within(name, "vo_core") and name != "vo_core"
@@ -121,3 +128,5 @@ def test_the_reader_sees_every_import():
     assert "vo_core.front_ends.klt.pipeline" in imported(PACKAGE / "front_ends" / "__init__.py")  # in a function
     assert "vo_core.features.orb.OrbExtractor" in imported(PACKAGE / "init" / "epipolar_check.py")
     assert broken_arrows(("vo_core.direct",), lambda name: within(name, "vo_core.geometry"))  # it does use geometry
+    assert broken_arrows(("vo_core.fdmo",), lambda name: within(name, "vo_core.direct"))  # the decision reads direct's
+    assert broken_arrows(("vo_core.system",), lambda name: within(name, "vo_core.fdmo"))  # the system decides by it

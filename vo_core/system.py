@@ -1,7 +1,8 @@
 """The odometry: one object that takes frames in order and emits results and events to its sinks.
 
-``Odometry.track`` runs FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves and decides;
-each half offers steps and decides nothing:
+``Odometry.track`` runs FDMO's per-frame flowchart (paper Fig. 2). It alone knows both halves: it gathers what they
+say about a frame (fdmo/evidence.py), has it decided (fdmo/decide.py, pure functions of that evidence) and carries the
+decision out (``_carry_out``, ``_continue_from``); each half offers steps and decides nothing:
 
     direct tracking from the motion model                  DirectOdometry.track (changes nothing)
     divergence test                                        direct/divergence.py: trusted, suspect, diverged, lost
@@ -45,10 +46,12 @@ from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.features.config import FeatureConfig
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
+from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide
+from vo_core.fdmo.evidence import Evidence, gather, gather_recovered
 from vo_core.front_ends import IMPLEMENTED_METHODS, make_front_end  # noqa: F401 (app reads IMPLEMENTED_METHODS here)
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
-from vo_core.geometry.multiview import image_motion_px, project_world
+from vo_core.geometry.multiview import project_world
 from vo_core.init.registry import initializer_factory
 from vo_core.mapping_thread import MappingThread
 
@@ -263,6 +266,8 @@ class Odometry:
         return True
 
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
+        """Fig. 2: track directly and judge; a trusted frame is accepted, any other is decided on the feature map's
+        evidence (``_recover``: gather, decide, carry out), or by DSO's rules without a feature half."""
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
             if self._stands_beside_mapping(frame, tracking, judgement, result):
@@ -297,10 +302,10 @@ class Odometry:
             return False
         with self.feature_map_lock:
             outcome = self._feature_pose(frame, tracking, result)
-            stands = self._suspect_stands(frame, tracking, dataclasses.replace(judgement), outcome, result)
-        if stands:
-            self._accept(frame, tracking, result)
-        return stands
+            decision = decide(self._evidence(frame, tracking, judgement, outcome), self.config)
+        if decision.kept:
+            self._carry_out(decision, frame, tracking, judgement, outcome, result)
+        return decision.kept
 
     def _track_and_judge(self, frame: DirectFrame, result: FrameResult) -> tuple[DirectTracking, Judgement]:
         tracking = self.direct.track(frame)
@@ -406,26 +411,11 @@ class Odometry:
 
     def _recover(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
                  result: FrameResult) -> None:
-        """FDMO Fig. 3: the feature map checks a suspect pose, and recovers where the direct pose is not kept."""
+        """FDMO Fig. 3: the feature map checks a suspect pose, and recovers where the direct pose is not kept: its
+        evidence gathered, decided on (fdmo/decide.py), and carried out."""
         outcome = self._feature_pose(frame, tracking, result)
-        if judgement.verdict is Verdict.SUSPECT and self._suspect_stands(frame, tracking, judgement, outcome, result):
-            self._accept(frame, tracking, result)
-            return
-        self._report_failure(frame, tracking, judgement, result)
-        _emit(result, EventKind.RECOVERY_TRIED,
-              {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
-        off_prediction = None if not outcome.succeeded else self._off_reliable_prediction(
-            frame, tracking, outcome.T_world_cam, f"the recovered pose ({outcome.pose.num_inliers} inliers, "
-            f"{outcome.pose.found_fraction:.1%} of the points in view)",
-            supported=outcome.pose.found_fraction >= self.config.fdmo.overrule_share)
-        if not outcome.succeeded or off_prediction:
-            details = outcome.details() if off_prediction is None else {**outcome.details(), "reason": off_prediction}
-            _emit(result, EventKind.RECOVERY_FAILED, details)
-            self._set_matches(result, outcome, tracking.reference)
-            return
-        _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
-        self._set_matches(result, outcome, tracking.reference)
-        self._continue_from(frame, outcome, tracking, result)
+        decision = decide(self._evidence(frame, tracking, judgement, outcome), self.config)
+        self._carry_out(decision, frame, tracking, judgement, outcome, result)
 
     def _feature_pose(self, frame: DirectFrame, tracking: DirectTracking, result: FrameResult):
         """The feature map's pose for the frame: blind, then around the direct pose (or the motion model's)."""
@@ -434,178 +424,42 @@ class Odometry:
         result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
         return outcome
 
-    def _off_reliable_prediction(self, frame: DirectFrame, tracking: DirectTracking, T_world_cam: np.ndarray,
-                                 whose: str, supported: bool) -> str | None:
-        """After missed frames, why a pose (``whose``: the recovered one, or a direct one the feature map confirmed)
-        is not taken: it lies off the motion the time implies (further than ``gap_motion_share`` of the predicted
-        image motion), and that motion has been predictable enough to say so (``_prior_reliable``). Parking, 9.15 m
-        dropped along rows of parked cars: a 5.0 % recovery at a look-alike place 9 m behind, where the direct map
-        restarted and stayed. A handheld camera's motion is not predictable over a second (teddy, 30 frames dropped:
-        the 6.4 % recovery was right, the prediction was not).
+    def _evidence(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement, outcome) -> Evidence:
+        """What the two halves and the motion prior say about a frame direct tracking did not trust."""
+        return gather(self.features, self.camera, tracking, judgement, outcome, self.posed,
+                      self._predicted_pose(frame), self.config)
 
-        A pose the feature map ``supported`` (a recovery with a conclusive share of the points in view, a direct pose
-        it confirmed) is refused only where it stayed behind after a gap as long as a jump: nearer where the camera
-        was than where the motion puts it. Where the view repeats, the feature map's matches find the look-alike place
-        that direct alignment locked onto, so its support is no witness against the motion (parking, 5 m dropped at
-        frame 100: it confirmed a direct pose by the cars the camera had passed, and every later frame was 5 m off,
-        reported as checked). Elsewhere the two witnesses outweigh the prediction, which errs where the motion turns
-        (KITTI with 1-4 frames missed every 2-5, live-like: right poses 19 px from a 33 px prediction, both halves
-        agreeing, were refused and the run ended 4.9 m off, against 0.145 m). None where it may be taken."""
-        if not self._prior_reliable(tracking):
-            return None
-        off = self._off_prediction(frame, tracking, T_world_cam)
-        if off is None or not self._strays_from_prediction(off):
-            return None
-        expected_px, found_px, apart_px = off
-        if supported:
-            if tracking.intervals_missed < self.config.fdmo.divergence.sudden_motion_factor or found_px >= apart_px:
-                return None
-            whose += f" stayed behind ({found_px:.0f} px from the last pose):"
-        return (f"{whose} lies {apart_px:.0f} px from where the last motion puts the camera after "
-                f"{tracking.intervals_missed:.0f} frame intervals ({expected_px:.0f} px of motion predicted), and the "
-                "motion has been that predictable")
-
-    def _prior_reliable(self, tracking: DirectTracking) -> bool:
-        """Whether the last motion, kept up over the frames missed, predicts where the camera is well enough to judge
-        a pose by: the median relative error of its one-frame predictions over the recent posed frames (how far
-        each frame's position was from the one its two predecessors predicted, over how far it moved), grown as a
-        random walk over the gap (times the square root of the intervals missed), stays under ``prior_reliability``
-        (KITTI and parking's steady motion: 0.01 a frame; teddy's handheld: 0.27)."""
-        if tracking.intervals_missed is None:
-            return False
-        errors = []
-        for (t2, T2), (t1, T1), (t0, T0) in zip(self.posed, self.posed[1:], self.posed[2:]):
-            moved = np.linalg.norm(T0[:3, 3] - T1[:3, 3])
-            if moved > 0:
-                predicted = extrapolate([(t2, T2), (t1, T1)], t0)
-                errors.append(np.linalg.norm(predicted[:3, 3] - T0[:3, 3]) / moved)
-        if len(errors) < self.config.fdmo.min_prior_frames:
-            return False
-        return float(np.median(errors)) * np.sqrt(tracking.intervals_missed) <= self.config.fdmo.prior_reliability
-
-    def _off_prediction(self, frame: DirectFrame, tracking: DirectTracking,
-                        T_world_cam: np.ndarray) -> tuple[float, float, float] | None:
-        """After missed frames, how a pose for the frame compares with the last motion kept up over the time that
-        passed, in image motion of the reference's points: (predicted, found, found pose to predicted pose) in
-        pixels, from the last posed frame; None without missed frames or a last motion."""
-        predicted = self._predicted_pose(frame)
-        if tracking.intervals_missed is None or predicted is None or len(self.posed) < 2:
-            return None
-        points, T_world_last = tracking.reference.points_world(), self.posed[-1][1]
-        return (image_motion_px(self.camera, points, T_world_last, predicted),
-                image_motion_px(self.camera, points, T_world_last, T_world_cam),
-                image_motion_px(self.camera, points, predicted, T_world_cam))
-
-    def _strays_from_prediction(self, off: tuple[float, float, float]) -> bool:
-        """The gap rule on ``_off_prediction``'s measures: the pose lies further from the predicted one than
-        ``gap_motion_share`` of the predicted image motion."""
-        expected_px, _, apart_px = off
-        return apart_px > self.config.fdmo.gap_motion_share * expected_px
-
-    def _suspect_stands(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement, outcome,
-                        result: FrameResult) -> bool:
-        """Whether a suspect direct pose is kept. The feature map's pose for the frame (an accepted recovery, or the
-        best candidate of one that fell short) confirms it where the two agree; it overrules it only with a
-        conclusive share of the map points in view; below that share, or with no feature pose at all, the direct
-        pose is kept, reported as unverified, unless the search around it finds almost none of the points the map
-        expects there, or, after a jump, it does not stand on its own (``_may_stand_unconfirmed``). A frame with
-        too few features to say anything keeps it too (FDMO's point: the direct estimate is then all there is).
-        Where it is not kept, the judgement gets the reason."""
-        check = {**judgement.details(tracking), **outcome.details()}
-        pose = outcome.pose
-        if pose is not None and pose.num_inliers >= self.config.features.recovery.min_ransac_inliers:
-            explained = self.features.explained(pose, tracking.T_world_cam, outcome.features)
-            check["explained"] = round(explained, 3)
-            agrees = explained >= self.config.fdmo.agreement
-            # A feature pose confirms only as a recovery (its inliers and share), and overrules only with a
-            # conclusive share; a weaker one, agreeing or not, leaves the direct pose to the motion check.
-            conclusive = outcome.succeeded if agrees else pose.found_fraction >= self.config.fdmo.overrule_share
-            if conclusive and not agrees:
-                judgement.reason += (f"; the feature map disagrees (the direct pose explains {explained:.0%} of its "
-                                     "matches)")
-                return False
-            if not conclusive and not self._may_stand_unconfirmed(frame, tracking, judgement, check):
-                judgement.reason += (f"; the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} "
-                                     "of the points in view) is too weakly supported to confirm it")
-                return False
-            if agrees:
-                lock = self._off_reliable_prediction(frame, tracking, tracking.T_world_cam,
-                                                     "the direct pose, which the feature map confirms,", supported=True)
-                if lock is not None:
-                    judgement.reason += f"; {lock}"
-                    return False
-                _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": True})
-                return True
-            _emit(result, EventKind.TRACKING_UNVERIFIED, {
-                **check, "why": (
-                    f"the feature map's pose ({pose.num_inliers} inliers, {pose.found_fraction:.1%} of the points "
-                    f"in view) disagrees but is too weakly supported to overrule the direct one")})
-            return True
-        if outcome.feature_deprived:
-            _emit(result, EventKind.TRACKING_CHECKED, {**check, "agreed": None})
-            return True
-        if outcome.contradicts_estimate(self.config.features.recovery):
-            around = outcome.around_estimate
-            judgement.reason += (f"; the feature map finds {around.num_inliers} of the {around.in_view} points it "
-                                 "expects in view at the direct pose")
-            return False
-        if not self._may_stand_unconfirmed(frame, tracking, judgement, check):
-            judgement.reason += ", and the feature map cannot place the frame"
-            return False
-        # No feature pose, and nothing that contradicts the converged alignment: after a long forward jump the
-        # direct map still holds the far points the feature map lost (KITTI, 20 frames dropped: direct alone
-        # 0.159 m; dropped as diverged until a new map: 8.59 m).
-        _emit(result, EventKind.TRACKING_UNVERIFIED, {
-            **check, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
-        return True
-
-    def _may_stand_unconfirmed(self, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
-                               check: dict) -> bool:
-        """Whether a direct pose that nothing confirms may stand after a jump. Direct alignment after a large jump
-        locks onto what looks alike near where it started (parking's rows of parked cars), and nothing else tells
-        that lock from a right pose when the feature map cannot place the frame:
-
-        - after missed frames, the motion the time implies does: the pose must lie within ``gap_motion_share`` of the
-          image motion (of the reference's points) that the last motion, kept up over the time that passed, predicts,
-          from the predicted pose (it stayed behind, or went far past it). A gap shorter than a jump (fewer than
-          ``divergence.sudden_motion_factor`` intervals: at the last speed the image moved less than a frame may move
-          without being one) is not judged so: the prediction's own error is as large there (a handheld camera's
-          over two intervals: a third of the motion), and live, where a frame or two is missed at every step, the
-          rule threw away right poses (13 px of motion where 34 px were predicted) and with them the run;
-        - after a sudden motion the timestamps do not show, there is no such prediction: the pose must fit the images
-          as well as the last frames did (DSO's retrack threshold; teddy with 30 frames dropped and retimed, the lock
-          left an RMSE of 13.7 against 6.0).
-
-        Other frames pass. Where it fails, the judgement gets the reason; ``check`` gets the measures either way."""
-        if tracking.intervals_missed is None:
-            if not judgement.jump or tracking.good_enough:
-                return True
-            judgement.reason += (f"; after the sudden motion the direct pose fits worse than the last frame (RMSE "
-                                 f"{tracking.rmse_after:.2f} against {tracking.last_rmse:.2f})")
-            return False
-        off = self._off_prediction(frame, tracking, tracking.T_world_cam)
-        if off is None:
-            return True
-        expected_px, found_px, apart_px = off
-        check.update(predicted_motion_px=round(expected_px, 1), direct_motion_px=round(found_px, 1),
-                     from_prediction_px=round(apart_px, 1))
-        shorter_than_a_jump = tracking.intervals_missed < self.config.fdmo.divergence.sudden_motion_factor
-        if shorter_than_a_jump or not self._strays_from_prediction(off):
-            return True
-        judgement.reason += (f"; over {tracking.intervals_missed:.0f} frame intervals the direct pose moved the map "
-                             f"{found_px:.0f} px where the last motion predicts {expected_px:.0f} px ({apart_px:.0f} "
-                             "px apart)")
-        return False
+    def _carry_out(self, decision: Decision, frame: DirectFrame, tracking: DirectTracking, judgement: Judgement,
+                   outcome, result: FrameResult) -> None:
+        """The one place a decision about an untrusted frame changes the halves and tells the sinks: a kept direct
+        pose is accepted (checked or unverified); one not kept is reported with the decision's reason, and the frame
+        goes on from the recovered pose, or is lost (the recovery failed or was refused)."""
+        if decision.kept:
+            checked = decision.outcome is Outcome.ACCEPT
+            _emit(result, EventKind.TRACKING_CHECKED if checked else EventKind.TRACKING_UNVERIFIED,
+                  {**judgement.details(tracking), **outcome.details(), **decision.details})
+            self._accept(frame, tracking, result)
+            return
+        self._report_failure(frame, tracking, dataclasses.replace(judgement, reason=decision.reason), result)
+        _emit(result, EventKind.RECOVERY_TRIED,
+              {"candidates": outcome.candidates, "reference_keyframe": tracking.reference.frame_index})
+        if decision.outcome is Outcome.LOST:
+            details = outcome.details() if decision.refusal is None else {**outcome.details(),
+                                                                          "reason": decision.refusal}
+            _emit(result, EventKind.RECOVERY_FAILED, details)
+            self._set_matches(result, outcome, tracking.reference)
+            return
+        _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
+        self._set_matches(result, outcome, tracking.reference)
+        self._continue_from(frame, outcome, tracking, result)
 
     def _continue_from(self, frame: DirectFrame, outcome, direct: DirectTracking | None,
                        result: FrameResult) -> None:
-        """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window.
-        Where that ends where the motion model's alignment (``direct``) ended, two starts found the same optimum:
-        the direct pose was right, and tracking goes on in the same window at the same scale. Where it ends elsewhere
-        but fits the images no better, there is no lock to leave either: the motion model's pose goes on in the same
-        window. Otherwise the direct map restarts at the recovered pose (refined by the alignment where it converged
-        and agrees with the feature map) with the depths of the feature points in view, so that it goes on at the
-        feature map's scale; feature tracking while too few of them are in view.
+        """Back to direct from a recovered pose (FDMO 4.2.2): the pose seeds direct alignment against the window
+        (``retracked``), the feature map says how that and the motion model's alignment (``direct``, where there was
+        one) compare with the recovery, fdmo/decide.after_recovery chooses (the same window goes on with one of them,
+        the direct map restarts at the recovered pose with the feature points' depths, or feature tracking), and
+        this carries it out.
 
         Why restart where the alignment from the recovered pose fits better: the motion model's had locked onto a
         worse optimum, so the window's points fit the new view poorly, and carrying its scale through them drifted it
@@ -615,37 +469,25 @@ class Odometry:
         feature map's depths (teddy, 13 frames missed right after the start, live under load: 75 points from the
         start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
         map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
-        T_world_cam, refined = outcome.T_world_cam, False
-        # Whether the recovery puts the camera elsewhere than the motion model's alignment: asked once, for both the
-        # window going on with that alignment and the fallback below.
-        direct_elsewhere = direct is not None and direct.converged and self._elsewhere(outcome, direct)
+        retracked = None
         if direct is not None:
-            tracking = self.direct.track(frame, T_world_cam)
-            result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + tracking.ms
-            resumed = self._resumed_alignment(outcome, direct, tracking, direct_elsewhere)
-            if resumed is not None:
-                self._resume_window(frame, outcome, direct, tracking, *resumed, result)
-                return
-            refined = tracking.converged and self.features.explained(
-                outcome.pose, tracking.T_world_cam, outcome.features) >= self.config.fdmo.agreement
-            T_world_cam = tracking.T_world_cam if refined else T_world_cam
-        min_observations = self.config.fdmo.min_restart_observations
-        uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam, min_observations)
-        if len(uv) >= self.config.fdmo.min_restart_points:
-            fits = _alignment_fits(direct, tracking) if direct is not None else {}
+            retracked = self.direct.track(frame, outcome.T_world_cam)
+            result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + retracked.ms
+        choice = after_recovery(gather_recovered(self.features, outcome, direct, retracked, self.config), self.config)
+        if choice.next is Next.RESUME:
+            alignment = direct if choice.alignment == "direct" else retracked
+            self._resume_window(frame, outcome, direct, retracked, alignment, choice.why, result)
+            return
+        T_world_cam = retracked.T_world_cam if choice.refined else outcome.T_world_cam
+        if choice.next is Next.RESTART:
+            uv, inverse_depths = self.features.depths_in_view(outcome.pose, T_world_cam,
+                                                              self.config.fdmo.min_restart_observations)
+            fits = _alignment_fits(direct, retracked) if direct is not None else {}
             _emit(result, EventKind.DIRECT_RESTARTED,
-                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": refined,
+                  {"points": len(uv), "keyframe": outcome.keyframe, "stage": outcome.stage, "refined": choice.refined,
                    **fits})
             self.mode = _Mode.DIRECT
             self._grow_feature_map(self.direct.restart_at(frame, T_world_cam, uv, inverse_depths, result), result)
-            return
-        converged = [] if direct is None else [
-            a for a in (direct, tracking) if a.converged and not (a is direct and direct_elsewhere)]
-        if converged:  # the window's points, however weak here, against depths the feature map has not settled
-            why = (f"{len(uv)} of the feature points in view are seen by {min_observations} keyframes or more: too few "
-                   "to restart from (the better fit of the two alignments goes on)")
-            self._resume_window(frame, outcome, direct, tracking, min(converged, key=lambda a: a.rmse_after), why,
-                                result)
             return
         self._pose_from_features(T_world_cam, outcome.pose.num_inliers, result)
 
@@ -658,39 +500,6 @@ class Odometry:
                "last_rmse": rounded_rmse(alignment.last_rmse), "stage": outcome.stage, "why": why,
                **_alignment_fits(direct, retracked)})
         self._accept(frame, alignment, result)
-
-    def _resumed_alignment(self, outcome, direct: DirectTracking, retracked: DirectTracking,
-                           direct_elsewhere: bool) -> tuple[DirectTracking, str] | None:
-        """The alignment the same window goes on with after a recovery, and why; None where the map restarts.
-        ``direct_elsewhere``: the recovery puts the camera elsewhere than the motion model's alignment does."""
-        if not (direct.converged and retracked.converged):
-            return None
-        if self._same_optimum(outcome, direct, retracked):
-            return retracked, "both alignments reached the same optimum"
-        if retracked.rmse_after < direct.rmse_after or direct_elsewhere:
-            return None  # the motion model's alignment locked onto a worse optimum, or is at another place
-        return direct, "the alignment from the recovered pose fits the images no better than the motion model's"
-
-    def _elsewhere(self, outcome, alignment: DirectTracking) -> bool:
-        """Whether a conclusive recovery puts the camera at another place than ``alignment`` does: the alignment
-        explains almost none of its inliers (``fdmo.elsewhere_share``). Its fit, however good, is then no reason to
-        keep it: where the window does not see the place the camera is at, no alignment fits it well (parking
-        played back 70 frames: the motion model's alignment 10.9 m off at RMSE 12.88, explaining none of the
-        recovery's 340 inliers; the one from the recovered pose 13.22; kept, the frame was 10.9 m off, reported as
-        recovered). Where the motion model's alignment was right and the feature pose off by the map's own error,
-        it explained most of them (teddy, 13 frames missed after the start: 72 %)."""
-        fdmo = self.config.fdmo
-        return (outcome.pose.found_fraction >= fdmo.overrule_share and self.features.explained(
-            outcome.pose, alignment.T_world_cam, outcome.features) < fdmo.elsewhere_share)
-
-    def _same_optimum(self, outcome, direct: DirectTracking, retracked: DirectTracking) -> bool:
-        """Whether the alignment from the recovered pose ended where the motion model's did (within
-        ``same_optimum_px`` on the recovery's inliers). Two starts that reach one optimum confirm it; the feature
-        pose then differs from it by the feature map's own error, which the images resolve better (teddy played
-        forward and back: at three recoveries both alignments met 0.4-0.6 cm from the truth, the feature poses
-        were 0.6-2 cm off and the direct pose explained only 29-59 % of their inliers)."""
-        shift_px = self.features.reprojection_shift(outcome.pose, direct.T_world_cam, retracked.T_world_cam)
-        return shift_px <= self.config.fdmo.same_optimum_px
 
     def _track_features(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 3's feature-based tracking: motion model, guided search in the local map, pose-only BA; the

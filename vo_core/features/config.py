@@ -105,7 +105,7 @@ class RecoveryConfig:
     # A frame with fewer ORB features than this share of OrbConfig.num_features is feature-deprived: when the
     # recovery fails there, the direct estimate is the only one left and is kept (FDMO's point: direct tracking
     # works where features do not). A textured frame the feature map does not recognize keeps it too, reported as
-    # unverified, unless the search around it contradicts it (Odometry._suspect_stands).
+    # unverified, unless the search around it contradicts it (vo_core/fdmo/decide.py).
     feature_deprived_below: float = 0.2
     tracking_radius_px: float = 15.0  # ORB-SLAM2 TrackWithMotionModel: th = 15 (monocular)
 

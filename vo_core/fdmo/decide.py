@@ -1,0 +1,260 @@
+"""FDMO's decisions, pure functions of the evidence (evidence.py) and the config: they change nothing and ask no half;
+the system carries them out. ``decide``: what becomes of a frame direct tracking did not trust (Odometry._carry_out);
+``after_recovery``: how tracking goes back to direct from a recovered pose (Odometry._continue_from).
+
+    verdict suspect (the camera may have jumped, or no motion hypothesis fit as well as the last frame):
+        the feature map's pose (10+ inliers), compared with the direct one (the share of its inliers it explains):
+            agrees (>= fdmo.agreement)                                     ACCEPT (checked) where it is a recovery or
+                                                                           the direct pose may stand unconfirmed,
+                                                                           unless that stayed behind a reliable prior
+            disagrees with a conclusive share of the points in view         not kept
+            (fdmo.overrule_share)
+            disagrees, too weak to overrule                                ACCEPT_UNVERIFIED where the direct pose
+                                                                           may stand unconfirmed, else not kept
+        no feature pose:
+            the frame is feature-deprived                                  ACCEPT (checked, nothing to check with)
+            the search around the direct pose finds under a recovery's
+            share of the points it expects there                          not kept
+            else                                                           ACCEPT_UNVERIFIED where the direct pose
+                                                                           may stand unconfirmed, else not kept
+    not kept (a suspect pose refused, or the verdict diverged or lost):
+        the feature map recovered a pose                                   RECOVER, unless it lies off a reliable
+                                                                           motion prior: LOST (refused)
+        else                                                               LOST
+
+"May stand unconfirmed": after missed frames as long as a jump (divergence.sudden_motion_factor intervals), the direct
+pose lies within fdmo.gap_motion_share of the image motion the prior predicts, from the predicted pose; after a sudden
+motion the timestamps do not show, it fits the images as well as the last frame did (DSO's retrack threshold).
+"Off a reliable prior": the prior's error over the gap is at most fdmo.prior_reliability and the pose lies further than
+fdmo.gap_motion_share of the predicted motion from the predicted pose; a pose the feature map supports (a direct pose
+it confirms, a recovery with a conclusive share) only where, after a gap as long as a jump, it stayed behind (nearer
+the last pose than the predicted one).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+
+from vo_core.direct.divergence import Verdict
+from vo_core.fdmo.evidence import Evidence, Motion, RecoveredEvidence
+
+
+class Outcome(Enum):
+    ACCEPT = "accept"  # the direct pose is kept, checked: the feature map confirms it (or cannot, feature-deprived)
+    ACCEPT_UNVERIFIED = "accept_unverified"  # kept: the feature map can neither confirm nor overrule it
+    RECOVER = "recover"  # not kept: back to direct from the feature map's pose (Odometry._continue_from)
+    LOST = "lost"  # not kept, and no pose: the recovery failed, or was refused (Decision.refusal)
+
+
+@dataclass(frozen=True)
+class Decision:
+    outcome: Outcome
+    reason: str  # the divergence test's reason, with why the direct pose is not kept where it is not
+    # The check's measures for the event of a kept pose (tracking_checked, tracking_unverified), beside the verdict's
+    # and the feature map's: explained, the motion against the prior, and "agreed" or "why".
+    details: dict = field(default_factory=dict)
+    refusal: str | None = None  # why a recovered pose is not taken (recovery_failed's reason)
+
+    @property
+    def kept(self) -> bool:
+        return self.outcome in (Outcome.ACCEPT, Outcome.ACCEPT_UNVERIFIED)
+
+
+def decide(evidence: Evidence, config) -> Decision:
+    """What becomes of the frame (``config``: the system's Config, its fdmo and features.recovery settings)."""
+    verdict = evidence.direct.verdict
+    if verdict is Verdict.TRUSTED:
+        return Decision(Outcome.ACCEPT, evidence.direct.reason)
+    reason = evidence.direct.reason
+    if verdict is Verdict.SUSPECT:
+        kept = _suspect(evidence, config)
+        if isinstance(kept, Decision):
+            return kept
+        reason += kept
+    return _recovery(evidence, reason, config)
+
+
+def _suspect(evidence: Evidence, config) -> Decision | str:
+    """Whether a suspect direct pose is kept (its Decision), else why not (to append to the reason). The feature
+    map's pose confirms it where the two agree; it overrules it only with a conclusive share of the map points in
+    view; below that share, or with no feature pose at all, the direct pose is kept, reported as unverified, unless
+    the search around it finds almost none of the points the map expects there, or, after a jump, it may not stand
+    unconfirmed. A frame with too few features to say anything keeps it too (FDMO's point: the direct estimate is
+    then all there is)."""
+    fdmo, recovery = config.fdmo, config.features.recovery
+    features, reason = evidence.features, evidence.direct.reason
+    details: dict = {}
+    pose = features.pose
+    if pose is not None and pose.inliers >= recovery.min_ransac_inliers:
+        explained = pose.explained
+        details["explained"] = round(explained, 3)
+        agrees = explained >= fdmo.agreement
+        # A feature pose confirms only as a recovery (its inliers and share), and overrules only with a conclusive
+        # share; a weaker one, agreeing or not, leaves the direct pose to the motion check.
+        conclusive = features.succeeded if agrees else pose.found_fraction >= fdmo.overrule_share
+        if conclusive and not agrees:
+            return f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
+        if not conclusive:
+            unconfirmed = _may_not_stand_unconfirmed(evidence, config, details)
+            if unconfirmed is not None:
+                return (f"{unconfirmed}; the feature map's pose ({pose.inliers} inliers, {pose.found_fraction:.1%} "
+                        "of the points in view) is too weakly supported to confirm it")
+        if agrees:
+            lock = _off_reliable_prediction(evidence, evidence.prior.direct,
+                                            "the direct pose, which the feature map confirms,", True, config)
+            if lock is not None:
+                return f"; {lock}"
+            return Decision(Outcome.ACCEPT, reason, {**details, "agreed": True})
+        return Decision(Outcome.ACCEPT_UNVERIFIED, reason, {**details, "why": (
+            f"the feature map's pose ({pose.inliers} inliers, {pose.found_fraction:.1%} of the points in view) "
+            "disagrees but is too weakly supported to overrule the direct one")})
+    if features.feature_deprived:
+        return Decision(Outcome.ACCEPT, reason, {"agreed": None})
+    around = features.around_estimate
+    if around is not None and around.in_view >= recovery.min_inliers \
+            and around.found_fraction < recovery.min_found_fraction:
+        return (f"; the feature map finds {around.inliers} of the {around.in_view} points it expects in view at the "
+                "direct pose")
+    unconfirmed = _may_not_stand_unconfirmed(evidence, config, details)
+    if unconfirmed is not None:
+        return f"{unconfirmed}, and the feature map cannot place the frame"
+    # No feature pose, and nothing that contradicts the converged alignment: after a long forward jump the direct map
+    # still holds the far points the feature map lost.
+    return Decision(Outcome.ACCEPT_UNVERIFIED, reason, {
+        **details, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
+
+
+def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str | None:
+    """Why a direct pose that nothing confirms may not stand after a jump (to append to the reason), None where it
+    may. Direct alignment after a large jump locks onto what looks alike near where it started, and nothing else tells
+    that lock from a right pose when the feature map cannot place the frame:
+
+    - after missed frames, the motion prior does: the pose must lie within ``gap_motion_share`` of the image motion it
+      predicts, from the predicted pose. A gap shorter than a jump (fewer than ``divergence.sudden_motion_factor``
+      intervals) is not judged so: the prediction's own error is as large there;
+    - after a sudden motion the timestamps do not show, there is no such prediction: the pose must fit the images as
+      well as the last frames did (DSO's retrack threshold).
+
+    Other frames pass. ``details`` gets the motion measures either way."""
+    direct = evidence.direct
+    if direct.intervals_missed is None:
+        if not direct.jump or direct.good_enough:
+            return None
+        return (f"; after the sudden motion the direct pose fits worse than the last frame (RMSE "
+                f"{direct.rmse_after:.2f} against {direct.last_rmse:.2f})")
+    off = evidence.prior.direct
+    if off is None:
+        return None
+    details.update(predicted_motion_px=round(off.predicted_px, 1), direct_motion_px=round(off.found_px, 1),
+                   from_prediction_px=round(off.apart_px, 1))
+    shorter_than_a_jump = direct.intervals_missed < config.fdmo.divergence.sudden_motion_factor
+    if shorter_than_a_jump or not _strays(off, config):
+        return None
+    return (f"; over {direct.intervals_missed:.0f} frame intervals the direct pose moved the map {off.found_px:.0f} px "
+            f"where the last motion predicts {off.predicted_px:.0f} px ({off.apart_px:.0f} px apart)")
+
+
+def _recovery(evidence: Evidence, reason: str, config) -> Decision:
+    """The direct pose is not kept: the feature map's recovered pose is taken, unless it lies off a reliable motion
+    prior (a look-alike place: the recovery is refused)."""
+    features = evidence.features
+    if not features.succeeded:
+        return Decision(Outcome.LOST, reason)
+    pose = features.pose
+    refusal = _off_reliable_prediction(
+        evidence, evidence.prior.recovered,
+        f"the recovered pose ({pose.inliers} inliers, {pose.found_fraction:.1%} of the points in view)",
+        pose.found_fraction >= config.fdmo.overrule_share, config)
+    if refusal is not None:
+        return Decision(Outcome.LOST, reason, refusal=refusal)
+    return Decision(Outcome.RECOVER, reason)
+
+
+def _off_reliable_prediction(evidence: Evidence, off: Motion | None, whose: str, supported: bool,
+                             config) -> str | None:
+    """After missed frames, why a pose (``whose``: the recovered one, or a direct one the feature map confirmed; ``off``
+    its motion against the prior) is not taken: it lies off the motion the time implies (further than
+    ``gap_motion_share`` of the predicted image motion), and that motion has been predictable enough to say so
+    (``prior_reliable``). A pose the feature map ``supported`` (a recovery with a conclusive share of the points in
+    view, a direct pose it confirmed) is refused only where it stayed behind after a gap as long as a jump: nearer where
+    the camera was than where the motion puts it (where the view repeats, the feature map's matches find the
+    look-alike place that direct alignment locked onto). None where it may be taken."""
+    if not prior_reliable(evidence.prior.error, config):
+        return None
+    if off is None or not _strays(off, config):
+        return None
+    intervals_missed = evidence.direct.intervals_missed
+    if supported:
+        if intervals_missed < config.fdmo.divergence.sudden_motion_factor or off.found_px >= off.apart_px:
+            return None
+        whose += f" stayed behind ({off.found_px:.0f} px from the last pose):"
+    return (f"{whose} lies {off.apart_px:.0f} px from where the last motion puts the camera after "
+            f"{intervals_missed:.0f} frame intervals ({off.predicted_px:.0f} px of motion predicted), and the "
+            "motion has been that predictable")
+
+
+def prior_reliable(error: float | None, config) -> bool:
+    """Whether the motion prior predicts where the camera is well enough to judge a pose by: its error over the gap
+    (evidence.prior_error) is at most ``fdmo.prior_reliability`` (KITTI and parking's steady motion: 0.01 a frame;
+    teddy's handheld: 0.27)."""
+    return error is not None and error <= config.fdmo.prior_reliability
+
+
+def _strays(off: Motion, config) -> bool:
+    """The gap rule: the pose lies further from the predicted one than ``gap_motion_share`` of the predicted image
+    motion."""
+    return off.apart_px > config.fdmo.gap_motion_share * off.predicted_px
+
+
+# ---------------------------------------------------------------------------------------------- after a recovery
+
+
+class Next(Enum):
+    RESUME = "resume"  # the same window goes on, with Continuation.alignment
+    RESTART = "restart"  # the direct map restarts at the recovered pose (refined where Continuation.refined)
+    FEATURE_TRACKING = "feature_tracking"  # the frame gets the feature pose; feature tracking takes the next frames
+
+
+@dataclass(frozen=True)
+class Continuation:
+    next: Next
+    alignment: str | None = None  # RESUME: "direct" (the motion model's) or "retracked" (from the recovered pose)
+    why: str = ""  # RESUME: why the window goes on
+    refined: bool = False  # the alignment from the recovered pose agrees with the feature map: the pose to go on from
+    points: int = 0  # the restart's feature points (at the pose it goes on from)
+
+
+def after_recovery(evidence: RecoveredEvidence, config) -> Continuation:
+    """Back to direct from a recovered pose (FDMO 4.2.2). Where the alignment from the recovered pose ends where the
+    motion model's ended (``fdmo.same_optimum_px``), two starts found the same optimum and the same window goes on;
+    where it ends elsewhere but fits the images no better, there is no lock to leave: the motion model's alignment goes
+    on. Unless the recovery puts the camera elsewhere than the motion model's alignment (it explains under
+    ``fdmo.elsewhere_share`` of a conclusive recovery's inliers), which is then not kept. Otherwise the direct map
+    restarts at the recovered pose (at the alignment from it where that agrees with the feature map,
+    ``fdmo.agreement``) with ``fdmo.min_restart_points`` feature depths or more; with fewer, the better fit of the
+    converged alignments goes on; with none, feature tracking."""
+    fdmo = config.fdmo
+    direct, retracked = evidence.direct, evidence.retracked
+    elsewhere = (direct is not None and direct.converged and evidence.found_fraction >= fdmo.overrule_share
+                 and evidence.direct_explained < fdmo.elsewhere_share)
+    if direct is not None and direct.converged and retracked.converged:
+        if evidence.shift_px <= fdmo.same_optimum_px:
+            return Continuation(Next.RESUME, "retracked", "both alignments reached the same optimum")
+        if not (retracked.rmse_after < direct.rmse_after or elsewhere):
+            return Continuation(Next.RESUME, "direct",
+                                "the alignment from the recovered pose fits the images no better than the motion "
+                                "model's")
+    refined = (retracked is not None and retracked.converged
+               and evidence.retracked_explained >= fdmo.agreement)
+    points = evidence.restart_points_retracked if refined else evidence.restart_points
+    if points >= fdmo.min_restart_points:
+        return Continuation(Next.RESTART, refined=refined, points=points)
+    converged = [(name, a) for name, a in (("direct", direct), ("retracked", retracked))
+                 if a is not None and a.converged and not (name == "direct" and elsewhere)]
+    if converged:  # the window's points, however weak here, against depths the feature map has not settled
+        name = min(converged, key=lambda named: named[1].rmse_after)[0]
+        why = (f"{points} of the feature points in view are seen by {fdmo.min_restart_observations} keyframes or "
+               "more: too few to restart from (the better fit of the two alignments goes on)")
+        return Continuation(Next.RESUME, name, why, refined, points)
+    return Continuation(Next.FEATURE_TRACKING, refined=refined, points=points)
