@@ -243,9 +243,7 @@ class Odometry:
         if self.direct.failed_start is None:
             return False
         self._own_the_maps()
-        discarded = self.direct.discard_failed_start(frame, result)
-        self._forget_rejected_start(result)
-        return discarded
+        return self.direct.discard_failed_start(frame, result)
 
     def _forget_rejected_start(self, result: FrameResult) -> None:
         """A start the direct half rejected (start_check.py) takes its feature map with it: that map holds the
@@ -365,19 +363,12 @@ class Odometry:
 
     def _initialize(self, frame: DirectFrame, result: FrameResult) -> None:
         """Feed the direct initializer. After a reinitialization, first try to go on in the old map, so that it
-        keeps its scale instead of a new one: its window where it was kept, else its feature map (blind, and
-        around where the map's last motion would have taken the camera)."""
+        keeps its scale instead of a new one: its window, which a reinitialization keeps (with its feature map)
+        until the new map exists. (Without a window there is no old map to go on in: the direct half drops its
+        window only with a rejected start, which takes its feature map with it.)"""
         if self.features is not None and self.direct.has_window:
             self._track_old_window(frame, result)
             if result.T_world_cam is not None:
-                return
-        elif self.features is not None and not self._feature_map_empty:
-            outcome = self.features.recover(frame.frame.image, self.features.newest_keyframe,
-                                            self._predicted_pose(frame))
-            result.timings_ms["recovery"] = outcome.ms
-            if outcome.succeeded:
-                _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
-                self._continue_from(frame, outcome, None, result)
                 return
         outcome = self.direct.initialize(frame, result)
         if outcome is not None and self.features is not None:
