@@ -57,6 +57,8 @@ class TrackingResult:
     rmse_per_level: np.ndarray  # (levels,) sqrt of the mean Huber energy at the end of each level, NaN if unused
     rmse_before: float  # finest level, at the initial pose (FDMO's divergence test)
     rmse_after: float  # finest level, after the optimization
+    saturated_share: float  # finest level: the share of its terms beyond its cutoff after the optimization
+    cutoff_repeat: float  # finest level: how many times DSO's cutoff was doubled (1: not raised)
     flow: np.ndarray  # (3,) DSO's flow indicators (mean squared shift in px^2: T, R (0), RT)
     num_terms: int  # residual terms used at the finest level
 
@@ -240,6 +242,13 @@ class CoarseTracker:
         """sqrt(mean Huber energy) of Eq. 2 at a given pose, with DSO's cutoff (calcRes)."""
         return self.fit(frame, T_frame_ref, affine, exposure, level)[0]
 
+    def end_fit(self, frame: ImagePyramid, result: TrackingResult, exposure: float | None) -> tuple[float, float]:
+        """``fit`` at a result's final pose: the finest level's own numbers where its cutoff was not raised (the same
+        residuals), measured anew where it was."""
+        if result.cutoff_repeat == 1.0:
+            return result.rmse_after, result.saturated_share
+        return self.fit(frame, result.T_frame_ref, result.affine, exposure)
+
     def fit(
         self, frame: ImagePyramid, T_frame_ref: np.ndarray, affine: np.ndarray, exposure: float | None, level: int = 0
     ) -> tuple[float, float]:
@@ -279,20 +288,21 @@ class CoarseTracker:
         rmse_before = self.rmse(frame, T, ab, exposure, level=0) if measure_start else float("nan")
         rmse_levels = np.full(num_levels, np.nan)
         flow = np.zeros(3)  # DSO's flow indicators come from the finest level only
-        num_terms = 0
+        num_terms, saturated, cutoff_repeat = 0, 1.0, 1.0
         repeated = False
         level = coarsest
         while level >= 0:
-            T, ab, mean_energy, num_terms, cutoff_repeat = self._align_level(frame, level, T, ab, exposure)
+            T, ab, mean_energy, num_terms, saturated, cutoff_repeat = self._align_level(frame, level, T, ab, exposure)
             rmse_levels[level] = np.sqrt(mean_energy)
+            end = (saturated, cutoff_repeat)
             if not np.isfinite(rmse_levels[level]) or rmse_levels[level] > config.abort_factor * abort[level]:
-                return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms)
+                return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms, *end)
             if cutoff_repeat > 1 and not repeated:
                 repeated = True  # DSO: a level that needed a larger cutoff is optimized once more
                 continue
             if coarse_optima is not None and level == coarsest:
                 if self._reached_before(level, T, coarse_optima):
-                    return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms)
+                    return self._result(False, T, ab, rmse_levels, rmse_before, flow, num_terms, *end)
                 coarse_optima.append(T)
             level -= 1
         flow = self._flow_indicators(frame[0].camera, self.levels[0], T[:3, :3], T[:3, 3])
@@ -301,22 +311,22 @@ class CoarseTracker:
             and abs(ab[1]) <= config.max_abs_b
             and num_terms >= config.min_points_in_view
         )
-        return self._result(success, T, ab, rmse_levels, rmse_before, flow, num_terms)
+        return self._result(success, T, ab, rmse_levels, rmse_before, flow, num_terms, *end)
 
     def _align_level(self, frame: ImagePyramid, level: int, T: np.ndarray, ab: np.ndarray, exposure: float | None):
         """One level's cutoff and DSO's Levenberg-Marquardt loop (photometric_kernels.align_level): (T, ab, mean
-        energy, terms, the cutoff's repeat factor)."""
+        energy, terms, their share saturated, the cutoff's repeat factor)."""
         c = self.config
         points = self.levels[level]
         max_iterations = c.max_iterations[min(level, len(c.max_iterations) - 1)]
-        T, ab, mean_energy, num_terms, repeat = align_level(
+        T, ab, mean_energy, num_terms, saturated, repeat = align_level(
             points.rays, points.idepth, points.color, np.ascontiguousarray(T), np.ascontiguousarray(ab),
             points.intrinsics, WARP_BORDER, frame[level].packed, self._exposure_ratio(exposure), self.reference_affine,
             float(c.huber_threshold), float(c.cutoff_threshold), float(c.max_saturated_ratio),
             float(c.max_cutoff_repeat), self._scale, float(c.initial_lambda), float(c.lambda_extrapolation_limit),
             float(c.lambda_decrease), float(c.lambda_increase), int(max_iterations), float(c.min_increment_norm),
         )
-        return T, ab, float(mean_energy), int(num_terms), float(repeat)
+        return T, ab, float(mean_energy), int(num_terms), float(saturated), float(repeat)
 
     def _reached_before(self, level: int, T_frame_ref: np.ndarray, optima: list[np.ndarray]) -> bool:
         """Whether the level's points land within ``same_coarse_optimum_px`` (median, pixels of the level) of where
@@ -341,7 +351,7 @@ class CoarseTracker:
         return median_shift_px(uv_a, uv_b, front_a & front_b)
 
     @staticmethod
-    def _result(success, T, ab, rmse_levels, rmse_before, flow, num_terms) -> TrackingResult:
+    def _result(success, T, ab, rmse_levels, rmse_before, flow, num_terms, saturated, cutoff_repeat) -> TrackingResult:
         return TrackingResult(
             success=bool(success),
             T_frame_ref=T,
@@ -351,6 +361,8 @@ class CoarseTracker:
             rmse_after=float(rmse_levels[0]) if np.isfinite(rmse_levels[0]) else float("nan"),
             flow=flow,
             num_terms=int(num_terms),
+            saturated_share=float(saturated),
+            cutoff_repeat=float(cutoff_repeat),
         )
 
     def project_points(self, T_frame_ref: np.ndarray) -> np.ndarray:

@@ -189,10 +189,10 @@ class DirectTracking:
     hypothesis's at its final pose, measured alike (finest level, the tracker's fixed cutoff: ``CoarseTracker.rmse``):
     FDMO's divergence test compares them. ``rmse_after`` is what the alignment itself reached on its finest level,
     where DSO raises the cutoff on a level with too many residuals above it, which makes the same pose's RMSE larger
-    (at half teddy's frame rate, 147 frames judged diverged at RMSE after / before 1.20-1.32 with a Levenberg-Marquardt
-    that accepts only steps that lower the energy). ``saturated_end``: the share of the terms that pose leaves
-    beyond the cutoff. ``achieved_rmse`` (per level) is
-    what DSO keeps as lastCoarseRMSE once the frame is accepted; ``last_rmse`` is the previous frame's, and
+    (a handheld TUM fr1 sequence at half its frame rate: 147 frames judged diverged at RMSE after / before 1.20-1.32,
+    with a Levenberg-Marquardt that accepts only steps that lower the energy). ``saturated_end``: the share of the
+    terms that pose leaves beyond the cutoff. ``achieved_rmse`` (per level) is what DSO keeps as lastCoarseRMSE once
+    the frame is accepted; ``last_rmse`` is the previous frame's, and
     ``good_enough`` says whether a hypothesis came within DSO's reTrackThreshold of it (trackNewCoarse stops
     trying guesses there; when none does, every motion hypothesis was worse than the last frame's fit)."""
 
@@ -342,8 +342,7 @@ class DirectOdometry:
         if best is not None:
             T_last_ref = se3_inverse(self.history[-1].T_world_cam) @ reference.T_world_cam
             motion_px = reference.tracker.image_motion_px(T_last_ref, best.T_frame_ref)
-            rmse_end, saturated_end = reference.tracker.fit(frame.pyramid, best.T_frame_ref, best.affine,
-                                                            frame.exposure)
+            rmse_end, saturated_end = reference.tracker.end_fit(frame.pyramid, best, frame.exposure)
         return DirectTracking(
             reference, best, prior_rmse, rmse_end, saturated_end, achieved, last_rmse, good_enough, tried,
             T_world_cam_prior is not None,

@@ -296,7 +296,8 @@ def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure
     ``min_increment_norm``. One compiled call per level: the per-iteration Python around the kernels cost as much
     as the kernels on the coarse levels, and DSO's list of motion guesses runs this up to 30 times a frame.
 
-    Returns (T, ab, mean energy, number of terms, the cutoff's repeat factor)."""
+    Returns (T, ab, mean energy, number of terms, the share of them saturated, the cutoff's repeat factor), the
+    energy and the terms at the final pose."""
     repeat = 1.0
     terms, count, num_terms, saturated, energy, factor = level_residuals(
         rays, idepth, color, T, ab, intrinsics, border, packed, exposure_ratio, reference_ab, huber, cutoff)
@@ -328,14 +329,14 @@ def align_level(rays, idepth, color, T, ab, intrinsics, border, packed, exposure
             cutoff * repeat)
         mean_new = _mean(energy_new, num_new)
         if mean_new < mean_energy:
-            T, ab, mean_energy, num_terms = T_new, ab_new, mean_new, num_new
+            T, ab, mean_energy, num_terms, saturated = T_new, ab_new, mean_new, num_new, saturated_new
             H, b = _scaled_normal_equations(terms_new, count_new, intrinsics, factor_new, reference_ab[1], step_scale)
             lam *= lambda_decrease
         else:
             lam = max(lam * lambda_increase, extrapolation_limit)
         if not np.sqrt(np.sum(inc * inc)) > min_increment_norm:
             break
-    return T, ab, mean_energy, num_terms, repeat
+    return T, ab, mean_energy, num_terms, saturated / max(num_terms, 1), repeat
 
 
 @kernel
