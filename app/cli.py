@@ -92,23 +92,23 @@ def _two_integers(option: str, text: str, form: str) -> tuple[int, int]:
 
 def _stride(text: str) -> int:
     """``K`` of --stride."""
-    try:
-        stride = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--stride {text}: expected a positive integer") from None
-    if stride < 1:
-        raise argparse.ArgumentTypeError(f"--stride {text}: must be 1 or more")
-    return stride
+    return _integer_within("--stride", text, 1)
 
 
 def _port(text: str) -> int:
+    return _integer_within("--port", text, 1, 65535)
+
+
+def _integer_within(option: str, text: str, lowest: int, highest: int | None = None) -> int:
+    """An integer option's value, from ``lowest`` to ``highest`` (no upper bound where None)."""
     try:
-        port = int(text)
+        value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--port {text}: expected an integer") from None
-    if not 1 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"--port {text}: must be between 1 and 65535")
-    return port
+        raise argparse.ArgumentTypeError(f"{option} {text}: expected an integer") from None
+    if value < lowest or (highest is not None and value > highest):
+        bounds = f"{lowest} or more" if highest is None else f"between {lowest} and {highest}"
+        raise argparse.ArgumentTypeError(f"{option} {text}: must be {bounds}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
