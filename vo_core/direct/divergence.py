@@ -1,19 +1,19 @@
 """Whether a direct alignment can be trusted (FDMO section 4.2.1).
 
 FDMO's test: the optimization of Eq. 2 diverged when RMSE_after / RMSE_before > 1 + epsilon, epsilon = 0.1,
-the RMSE before being the one at the constant-velocity guess, both measured alike (``DirectTracking.rmse_end``). It misses a case that matters: after a jump the
-guess is so wrong that the optimization lowers the RMSE while locking onto a wrong pose (teddy with 20 frames
-dropped at frame 100: RMSE 15.6 -> 13.5, ratio 0.87, a pose 20 cm off). DSO itself knows something is off
-then: it tried every motion hypothesis and none came within ``retrack_threshold`` (1.5) of the last frame's
-RMSE (trackNewCoarse's stopping rule). That is not proof of divergence (fast handheld motion does it in 4 % of
-teddy's frames), so such a result is SUSPECT: the system has it checked by the feature map, which decides.
-So is every result after missed frames (the timestamps say so): the motion across the gap is unknown, and a
-converged alignment with a fair RMSE proves little there (teddy, 45 frames dropped: 14 of 27 degrees found, RMSE
-within the retrack threshold, ratio below 1.1). And so is a frame whose image moved far more than the last frames'
-did (``sudden_motion_factor`` times their median): a jump the timestamps do not show (a video's dropped frames, FDMO's
-own frame-drop protocol, a shake). There DSO's guesses can fit the new view with a normal RMSE at a wrong pose (teddy,
-20 frames dropped and retimed: RMSE 6.35 against 6.0 before, 85 % of the translation missing, the image moved 22x
-the last frames' median), which nothing else notices.
+the RMSE before being the one at the constant-velocity guess, both measured alike (``DirectTracking.rmse_end``).
+It misses a case that matters: after a jump the guess is so wrong that the optimization lowers the RMSE while
+locking onto a wrong pose (teddy with 20 frames dropped at frame 100: RMSE 15.6 -> 13.5, ratio 0.87, a pose 20 cm
+off). DSO itself knows something is off then: it tried every motion hypothesis and none came within
+``retrack_threshold`` (1.5) of the last frame's RMSE (trackNewCoarse's stopping rule). That is not proof of
+divergence (fast handheld motion does it in 4 % of teddy's frames), so such a result is SUSPECT: the system has it
+checked by the feature map, which decides. So is every result after missed frames (the timestamps say so): the
+motion across the gap is unknown, and a converged alignment with a fair RMSE proves little there (teddy, 45 frames
+dropped: 14 of 27 degrees found, RMSE within the retrack threshold, ratio below 1.1). And so is a frame whose image
+moved far more than the last frames' did (``sudden_motion_factor`` times their median): a jump the timestamps do not
+show (a video's dropped frames, FDMO's own frame-drop protocol, a shake). There DSO's guesses can fit the new view
+with a normal RMSE at a wrong pose (teddy, 20 frames dropped and retimed: RMSE 6.35 against 6.0 before, 85 % of the
+translation missing, the image moved 22x the last frames' median), which nothing else notices.
 A result whose final pose leaves most of its residuals beyond the cutoff (a black frame: all of them) explains too
 little of the image to be kept unchecked: it is DIVERGED too, the RMSE ratio being blind there (both ends saturated).
 A result that did not converge at all is LOST (DSO's lost: no hypothesis converged, too few residuals).

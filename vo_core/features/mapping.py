@@ -264,7 +264,7 @@ class FeatureMapper:
         """Structure-only bundle adjustment (FDMO eqs. 3-6) of every point the keyframes observe, over their
         observations in those keyframes; outlier observations leave, and a point dies that lies behind a camera
         or that its remaining views no longer see under the parallax a triangulation needs
-        (``_supported_by_parallax``): the adjustment slides such a point along its nearly parallel rays, to
+        (``seen_under_parallax``): the adjustment slides such a point along its nearly parallel rays, to
         millions of metres (teddy, KITTI, parking: up to 1.3e9 m), where it would still be matched in recovery."""
         frame_indices = [k.frame_index for k in keyframes]
         table = feature_map.observations(frame_indices)
