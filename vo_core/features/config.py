@@ -152,9 +152,14 @@ class TrackingConfig:
     relocalization_grace_s: float = 1.0
     # ORB-SLAM2 takes a keyframe only while its local mapping thread is idle (NeedNewKeyFrame, monocular: c1b, and
     # not accepted while busy); its local mapping, run at camera rate, is busy for a while after each keyframe.
-    # Ours runs to the end between two frames, so this stands for that while: no keyframe sooner after the last
-    # (ours: 0 made nearly every frame a keyframe on teddy, 55 of 58, at 1 fps; see issue 19's benchmarks).
-    local_mapping_busy_s: float = 0.2
+    # Ours runs to the end between two frames, so this stands for that while: no keyframe sooner after the last.
+    # Ours: 0 made nearly every frame a keyframe on teddy (55 of 58 at 1 fps, issue 19). A tracking that asks for a
+    # keyframe interrupts ORB-SLAM2's local bundle adjustment (InterruptBA), so the while is its local mapping
+    # without most of the adjustment: 0.1 s, three frames at 30 Hz. Measured on the real-data matrix (seed 0,
+    # stride 1; BENCHMARKS.md): 0.2 lost fr1/desk at frame 49 (a keyframe every 6 frames could not keep up with its
+    # sweeps: 45 of 613 posed) where 0.1 poses 609 at 0.022 m; KITTI 0.184 -> 0.155, parking 0.044 -> 0.032, teddy
+    # 0.0079 -> 0.0089, the drone clip 0.32 -> 0.27 (its wrong start either way). 0.067 gave fr1/desk 0.028.
+    local_mapping_busy_s: float = 0.1
     reference_ratio_keyframe: float = 0.9  # ORB-SLAM2 NeedNewKeyFrame: thRefRatio = 0.9 (monocular) ...
     reference_ratio_two_keyframes: float = 0.4  # ... 0.4 while the map has a single keyframe
     min_inliers_for_keyframe: int = 15  # ORB-SLAM2 NeedNewKeyFrame c2: mnMatchesInliers > 15
