@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -148,3 +150,20 @@ def test_bundle_adjustment_removes_tracks_that_jump_in_a_middle_frame():
     for T_est, T_true in zip(estimate.poses_world_cam, poses):
         assert rotation_error_deg(T_est, T_true) < 0.2
         assert np.linalg.norm(T_est[:3, 3] * scale - T_true[:3, 3]) < 0.02 * np.linalg.norm(poses[-1][:3, 3])
+
+
+def test_a_homography_whose_motion_the_essential_matrix_contradicts_is_refused():
+    """A volume 8-12 m deep seen over 20 cm: a homography fits most of it within its threshold, and, taken (forced
+    here), decomposes into a translation 19 degrees off; the five-point essential matrix of the same views points
+    the right way, so the start waits for views that tell the two apart."""
+    rng = np.random.default_rng(2)
+    rays = CAMERA.unproject(rng.uniform([40, 40], [600, 440], (300, 2)))
+    points = rays * rng.uniform(8.0, 12.0, 300)[:, None]
+    moved = se3(so3_exp(np.array([0.0, 0.04, 0.01])), np.array([0.2, 0.02, 0.0]))
+    uv_first, uv_second = project(np.eye(4), points), project(moved, points) + rng.normal(0, 0.5, (300, 2))
+    homography_forced = dataclasses.replace(TwoViewConfig(), homography_ratio=0.0)
+    unchecked = dataclasses.replace(homography_forced, max_motion_disagreement_deg=180.0)
+    taken = reconstruct(CAMERA, uv_first, uv_second, unchecked, np.random.default_rng(0))
+    assert taken.model == "H" and direction_error_deg(taken.T_first_second[:3, 3], moved[:3, 3]) > 10.0
+    with pytest.raises(TwoViewFailure, match="deg apart"):
+        reconstruct(CAMERA, uv_first, uv_second, homography_forced, np.random.default_rng(0))
