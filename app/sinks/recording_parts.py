@@ -11,10 +11,10 @@ import re
 from pathlib import Path
 
 # Frames per file. The rerun SDK's file sink indexes every chunk in memory until its file is finished (the .rrd
-# footer) and needs as much again to write that index when the file closes; only a finished file gives it back. The
-# index grows by 2-7 MiB per 1,000 frames at 20-30 frames/s (more at a slower rate: the batcher flushes by time), so
-# a part of 1,000 frames holds it to under 2 % of a run's RSS (BENCHMARKS.md, "Long runs and determinism"); the
-# bundled sequence (200 frames) stays one file.
+# footer) and needs more again to write that index when the file closes; only a finished file gives it back. The
+# index grows by 2-5 MiB per 1,000 frames at 20-30 frames/s (more at a slower rate: the batcher flushes by time), so
+# a part of 1,000 frames holds it and its writing to a few MiB, where one file of 10,000 frames peaked 52 MiB above
+# the run at its close (BENCHMARKS.md, "Long runs and determinism"); the bundled sequence (200 frames) stays one file.
 PART_FRAMES = 1000
 
 
