@@ -2,7 +2,7 @@
 
     fdmo run [SOURCE | camera:N --camera FILE] [--out DIR] [--method fdmo|direct|features|klt] [--config FILE]
              [--set key=value ...] [--start N] [--end N] [--drop FRAME:COUNT ...] [--jump FRAME:TARGET ...]
-             [--gt FILE] [--realtime] [--mapping sync|threaded] [--rrd FILE | --no-rrd]
+             [--gt FILE] [--realtime] [--mapping sync|threaded] [--rrd FILE] [--rrd-part-frames N | --no-rrd]
              [--viser [--host ADDRESS] [--port P]] [--quiet]
     fdmo eval EST GT [--align sim3|se3|none] [--json]
     fdmo info SOURCE [--json]
@@ -37,6 +37,7 @@ from app.player import REAL_TIME
 from app.plot import DEFAULT_PLOT_FILE, PLANES
 from app.process_start import MAPPING_MODES, mapping_mode
 from app.sinks.background import BackgroundSink
+from app.sinks.recording_parts import PART_FRAMES, opening_argument, recording_files
 from vo_core.config import METHODS, Config, load_config
 from vo_core.datasets import DEFAULT_SEQUENCE, LAYOUTS
 from vo_core.errors import InputError
@@ -99,6 +100,11 @@ def _port(text: str) -> int:
     return _integer_within("--port", text, 1, 65535)
 
 
+def _part_frames(text: str) -> int:
+    """``N`` of --rrd-part-frames: 0 is one file."""
+    return _integer_within("--rrd-part-frames", text, 0)
+
+
 def _integer_within(option: str, text: str, lowest: int, highest: int | None = None) -> int:
     """An integer option's value, from ``lowest`` to ``highest`` (no upper bound where None)."""
     try:
@@ -140,6 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
     recording = run.add_mutually_exclusive_group()
     recording.add_argument("--rrd", type=Path, help=f"Rerun recording file (default: <out>/{DEFAULT_RECORDING})")
     recording.add_argument("--no-rrd", action="store_true", help="write no Rerun recording")
+    run.add_argument("--rrd-part-frames", type=_part_frames, metavar="N",
+                     help=f"the recording goes on in a new file (FILE.part2.rrd, ...) every N frames, which bounds the "
+                          f"memory the rerun SDK holds for the file; 0: one file (default: {PART_FRAMES})")
     run.add_argument("--viser", action="store_true", help="live browser view; stays up until Ctrl-C")
     run.add_argument("--host", default=DEFAULT_VISER_HOST,
                      help="address the viser page listens on (default: %(default)s, this machine only; "
@@ -234,6 +243,8 @@ def _run_source(args: argparse.Namespace) -> int:
     from app.pipeline import check_method, open_source
     from app.player import Player
 
+    if args.no_rrd and args.rrd_part_frames is not None:
+        raise InputError("--rrd-part-frames cannot be used with --no-rrd")
     device = None if args.source is None else live_device(args.source)
     if device is not None:
         _check_live_options(args)
@@ -301,7 +312,7 @@ def _run_and_report(args: argparse.Namespace, config: Config, sequence, player, 
         if args.out is None and out_dir.is_dir():
             _link_latest(out_dir)
     if summary is not None and not args.quiet:
-        recording = None if args.no_rrd else args.rrd or out_dir / DEFAULT_RECORDING
+        recording = [] if args.no_rrd else recording_files(args.rrd or out_dir / DEFAULT_RECORDING)
         print(_summary_text(summary.metrics, out_dir, recording))
     if summary is None or summary.status == INTERRUPTED:
         # Cut short (the files are still valid): the exit code says so, as metrics.json does.
@@ -340,7 +351,8 @@ def _warm_up(config: Config, camera, quiet: bool) -> None:
 def _sinks(args: argparse.Namespace, sequence, player, out_dir: Path) -> list:
     sinks = []
     if not args.no_rrd:
-        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence, args.own_process))
+        part_frames = PART_FRAMES if args.rrd_part_frames is None else args.rrd_part_frames
+        sinks.append(_rerun_sink(args.rrd or out_dir / DEFAULT_RECORDING, sequence, args.own_process, part_frames))
     if args.viser:
         sinks.append(_viser_view(sequence, player, args.host, args.port))
     return sinks
@@ -420,14 +432,14 @@ def prepare_recording_process() -> None:
     keep_pandas_unloaded()
 
 
-def _rerun_sink(path: Path, sequence, own_process: bool):
+def _rerun_sink(path: Path, sequence, own_process: bool, part_frames: int):
     if own_process:
         prepare_recording_process()
     from app.sinks.rerun_sink import RerunSink  # imported here: a run without a recording never loads rerun
 
     path.parent.mkdir(parents=True, exist_ok=True)
     return BackgroundSink(RerunSink(path, sequence.camera, ground_truth=sequence.ground_truth,
-                                    recording_name=_played(sequence)))
+                                    recording_name=_played(sequence), part_frames=part_frames))
 
 
 def _viser_view(sequence, player, host: str, port: int):
@@ -451,7 +463,8 @@ def played_name(sequence_name: str, stride: int) -> str:
     return sequence_name if stride == 1 else f"{sequence_name} (every {stride} frames)"
 
 
-def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None = None) -> str:
+def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: SequenceOf[Path] = ()) -> str:
+    """The summary printed at the end of a run; ``recording``: the files of its Rerun recording."""
     initialized = metrics["initialization_frame"]
     lines = [
         f"{played_name(metrics['sequence'], metrics['stride'])} ({metrics['method']}, {metrics['status']}): "
@@ -468,9 +481,13 @@ def _summary_text(metrics: dict[str, Any], out_dir: Path, recording: Path | None
     evaluation = metrics.get("evaluation")
     if evaluation:
         lines.append("  " + _evaluation_line(evaluation))
-    if recording is not None and not _has_display():
+    if len(recording) > 1:
+        lines.append(f"  the recording is in {len(recording)} files: rerun {opening_argument(recording)} opens them "
+                     "as one")
+    if recording and not _has_display():
         # `rerun FILE` opens a window: without a display it fails (winit's EventLoopError).
-        lines.append(f"  no display here: rerun --serve-web {recording} shows the recording in a browser")
+        lines.append(f"  no display here: rerun --serve-web {opening_argument(recording)} shows the recording in a "
+                     "browser")
     lines.append(f"  results in {out_dir}")  # last, as scripts read it
     return "\n".join(lines)
 

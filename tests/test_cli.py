@@ -182,6 +182,20 @@ def test_a_rerun_recording_is_written_by_default_or_where_asked(dataset, tmp_pat
     assert (tmp_path / "x.rrd").stat().st_size > 0 and not (tmp_path / "b" / "recording.rrd").exists()
 
 
+def test_a_recording_in_parts_is_named_in_the_summary_with_how_to_open_it(dataset, tmp_path, scripted, capsys,
+                                                                          monkeypatch):
+    """--rrd-part-frames 5: the 12 frames in three files, which the summary counts and opens together."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    out = tmp_path / "r"
+    code, stdout, _ = run_cli(capsys, "run", dataset, "--out", out, "--rrd-part-frames", "5")
+    assert code == 0
+    assert sorted(path.name for path in out.glob("recording*.rrd")) == [
+        "recording.part2.rrd", "recording.part3.rrd", "recording.rrd"]
+    assert f"the recording is in 3 files: rerun {out / 'recording*.rrd'} opens them as one" in stdout
+    assert f"rerun --serve-web {out / 'recording*.rrd'} shows the recording in a browser" in stdout
+
+
 def test_dropped_frames_never_reach_the_odometry_and_an_event_says_so(dataset, tmp_path, scripted, capsys):
     out = tmp_path / "results"
     code, _, _ = run_cli(capsys, "run", dataset, "--out", out, "--no-rrd", "--quiet", "--drop", "5:3", "--drop", "10:1")
@@ -318,6 +332,8 @@ def test_with_a_live_view_the_run_stays_up_until_stopped_and_restarts_on_request
         (["run", "{dataset}", "--jump", "40:2"], "--jump 40:2: frame 40 is not among the frames played (0..11)"),
         (["run", "{dataset}", "--jump", "5:40"], "--jump 5:40: frame 40 is not in the sequence played (0..11)"),
         (["run", "{dataset}", "--viser", "--port", "70000"], "between 1 and 65535"),
+        (["run", "{dataset}", "--rrd-part-frames", "-5"], "--rrd-part-frames -5: must be 0 or more"),
+        (["run", "{dataset}", "--no-rrd", "--rrd-part-frames", "100"], "cannot be used with --no-rrd"),
         (["run", "{dataset}", "--format", "nonsense"], "invalid choice: 'nonsense'"),
         (["run", "{dataset}", "--set", "direct.tracker.huber_threshold=abc"], "cannot read 'abc' as a number"),
         (["run", "{dataset}", "--set", "seed=2.5"], "cannot read 2.5 as an integer"),

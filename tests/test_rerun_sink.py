@@ -15,6 +15,7 @@ import pytest
 rr = pytest.importorskip("rerun")
 
 from app.sinks import rerun_sink as sink_module  # noqa: E402
+from app.sinks.recording_parts import recording_files  # noqa: E402
 from app.sinks.rerun_sink import RerunSink  # noqa: E402
 from app.sinks.scene import PLOT_LANES  # noqa: E402
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot  # noqa: E402
@@ -384,3 +385,102 @@ def test_a_recording_leaves_pandas_unloaded(tmp_path):
     assert result.stdout.split() == ["False"]
     entities = {chunk.entity_path for chunk in rr.chunk.RrdReader(path).stream().to_chunks()}
     assert {"/" + entity for entity in (sink_module.IMAGE, sink_module.EVENT_LOG, sink_module.DIRECT_POINTS)} <= entities
+
+
+# ------------------------------------------------------------------------ a long run in parts (issue 48)
+
+PART_FRAMES = 5  # the 12 frames in three files: steps 0-4, 5-9, 10-11
+RERUN_CLI = Path(sys.executable).with_name("rerun")  # installed with rerun-sdk, beside the interpreter
+
+
+@pytest.fixture(scope="module")
+def parts(tmp_path_factory) -> list[Path]:
+    path = tmp_path_factory.mktemp("parts") / "run.rrd"
+    run_synthetic(RerunSink(path, CAMERA, ground_truth=ground_truth(), recording_name="synthetic",
+                            part_frames=PART_FRAMES))
+    return recording_files(path)
+
+
+def steps(path: Path, entity: str, component: str | None = None) -> list[int]:
+    """The steps at which ``entity`` (its ``component``, where given) was logged in the file ``path``, in order."""
+    rows = []
+    for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
+        table = chunk.to_record_batch().to_pydict()
+        if chunk.entity_path == entity and "step" in table and (component is None or component in table):
+            values = table[component or "step"]
+            rows += [step for step, value in zip(table["step"], values) if value is not None]
+    return sorted(rows)
+
+
+def test_a_long_run_goes_on_in_parts_of_one_recording_that_each_verify(parts):
+    assert [path.name for path in parts] == ["run.rrd", "run.part2.rrd", "run.part3.rrd"]
+    # One recording id in every file: Rerun pools them into one recording (`rerun run*.rrd`).
+    ids = {(entry.application_id, entry.recording_id) for path in parts
+           for entry in rr.chunk.RrdReader(path).recordings()}
+    assert len(ids) == 1
+    verified = subprocess.run([str(RERUN_CLI), "rrd", "verify", *map(str, parts)], capture_output=True, text=True)
+    assert verified.returncode == 0, verified.stderr  # each part complete, its footer included
+
+
+def test_together_the_parts_hold_every_frame_once(parts):
+    """Each part holds its own frames (their images, their scalars); a part after the first starts with the camera
+    where the last frame of the one before left it."""
+    own = [list(range(start, min(start + PART_FRAMES, FRAMES))) for start in range(0, FRAMES, PART_FRAMES)]
+    assert [steps(path, "/world/camera/image", "EncodedImage:blob") for path in parts] == own
+    posed = [[step for step in part if step != LOST_FRAME] for part in own]
+    assert [steps(path, "/world/camera") for path in parts] == [posed[0]] + [
+        [before[-1], *steps_of_part] for before, steps_of_part in zip(posed, posed[1:])]
+    ratios = [step for path in parts for step in steps(path, "/plots/divergence/ratio")]
+    assert ratios == [step for part in posed for step in part]  # each posed frame's value, once
+
+
+def test_a_part_opened_alone_starts_with_what_the_frames_before_it_left(parts):
+    """The second part starts at step 4 with the styles, the name, the camera and its frustum, the whole path (and
+    the ground truth) and the event markers so far, though none of them changed at that step; the keyframes and the
+    clouds come at its first keyframe (8)."""
+    second: dict[str, list] = {}
+    for chunk in rr.chunk.RrdReader(parts[1]).stream().to_chunks():
+        second.setdefault(chunk.entity_path, []).append(chunk)
+    assert {"/world", "/__properties", "/plots/divergence/ratio"} <= set(second)  # static: axes, name, style
+    first_step = PART_FRAMES - 1
+    for entity in ("/world/camera", "/world/trajectory/estimate", "/world/trajectory/ground_truth",
+                   "/world/events/initialization_succeeded"):
+        assert steps(parts[1], entity)[0] == first_step, entity
+    assert any(matrix is not None for matrix in column(second["/world/camera/image"], "Pinhole:image_from_camera"))
+    assert np.array(column(second["/world/trajectory/estimate"], "LineStrips3D:strips")[0][0]).shape == (
+        first_step + 1 - (LOST_FRAME < first_step), 3)  # every pose up to step 4, the lost frame's none
+    for entity in ("/world/keyframes/8", "/world/map/direct_points"):
+        assert set(steps(parts[1], entity)) == {8}, entity
+
+
+def test_a_new_recording_removes_the_parts_of_an_older_one(tmp_path):
+    """A run into the same file (or a Restart from the viser page) replaces the recording there, parts included:
+    `rerun run*.rrd` must not pool an older run's parts with the new one."""
+    path = tmp_path / "run.rrd"
+
+    def play(sink: RerunSink, frames: int) -> None:
+        for index in range(frames):
+            sink.on_frame(SimpleNamespace(image=None), FrameResult(index, index * PERIOD_S, camera_pose(index), True))
+
+    older = RerunSink(path, CAMERA, part_frames=2)
+    play(older, 6)
+    older.close()
+    assert len(recording_files(path)) == 3
+    newer = RerunSink(path, CAMERA, part_frames=2)
+    play(newer, 3)
+    assert recording_files(path) == [path, path.with_name("run.part2.rrd")]
+    newer.restart()
+    play(newer, 1)
+    newer.close()
+    assert recording_files(path) == [path]
+    assert [entry.recording_id for entry in rr.chunk.RrdReader(path).recordings()] == [
+        newer.recording.get_recording_id()]
+
+
+def test_recording_files_come_in_part_order_and_leave_other_files_out(tmp_path):
+    names = ["run.rrd", "run.part10.rrd", "run.part2.rrd", "run.part2x.rrd", "other.part3.rrd", "run.part3.rrd.bak"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"")
+    found = recording_files(tmp_path / "run.rrd")
+    assert [path.name for path in found] == ["run.rrd", "run.part2.rrd", "run.part10.rrd"]
+    assert recording_files(tmp_path / "missing" / "run.rrd") == []

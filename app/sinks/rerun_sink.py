@@ -10,6 +10,11 @@ Each pass is a recording of its own: ``restart()`` (Restart on the viser page) e
 played so far and starts a new one, with a new recording id, in the same file, which then holds the new pass as
 every other result file of the folder does (``recording_name`` gets " (pass N)").
 
+A long run goes on in a new file every ``part_frames`` frames (issue 48): FILE.rrd holds the first part, then
+FILE.part2.rrd, FILE.part3.rrd, ... (app/sinks/recording_parts.py), each a complete .rrd with its footer, all with
+the same recording id, so that ``rerun FILE*.rrd`` opens them as one recording. Each part starts with what a part
+opened alone needs from the frames before it (the styles, the camera, the whole path, the event markers).
+
 Entities (the 3D world is the estimate's: the first camera's frame, x right, y down, z forward):
 
     world/camera                    T_world_cam of each posed frame
@@ -49,6 +54,7 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
+from app.sinks.recording_parts import PART_FRAMES, later_parts, part_path
 from app.sinks.scene import (
     DIVERGENCE_RATIO_COLOR,
     DIVERGENCE_THRESHOLD_COLOR,
@@ -71,7 +77,7 @@ from app.sinks.scene import (
     kind_style,
     match_colors,
 )
-from vo_core.events import Event, FrameResult, MapSnapshot
+from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.trajectory import Trajectory
 
@@ -110,6 +116,7 @@ SCALAR_COLUMN_FRAMES = 250
 # entity every BATCH_SECONDS or BATCH_BYTES (what a viewer following the file lags behind, what waits in memory).
 BATCH_SECONDS = 2.0
 BATCH_BYTES = 8 * 2**20
+FLUSH_TIMEOUT_S = 10.0  # the longest the end of a part or of the recording waits for the batches to reach the file
 POINT_RADIUS_UI = 1.5  # map points, in UI points (constant size on screen whatever the scale)
 MARKER_RADIUS_UI = 6.0
 PATH_RADIUS_UI = 1.5
@@ -147,8 +154,14 @@ class RerunSink:
         *,
         recording_name: str | None = None,
         jpeg_quality: int = JPEG_QUALITY,
+        part_frames: int = PART_FRAMES,
     ):
+        """``part_frames``: frames per file of the recording (0: one file, however long the run)."""
+        if part_frames < 0:
+            raise ValueError(f"part_frames {part_frames}: must be 0 (one file) or more")
         self.file = None if path is None else Path(path)
+        self.part_frames = part_frames
+        self.parts: list[Path] = []  # the files of this pass so far
         self.camera = camera
         self.jpeg_quality = jpeg_quality
         self.ground_truth = GroundTruthOverlay(ground_truth) if ground_truth is not None and len(ground_truth) else None
@@ -162,15 +175,14 @@ class RerunSink:
         self.passes += 1
         self.recording = rr.RecordingStream(self.application_id, batcher_config=rr.ChunkBatcherConfig(
             flush_tick=BATCH_SECONDS, flush_num_bytes=BATCH_BYTES))
-        if self.recording_name:
-            suffix = f" (pass {self.passes})" if self.passes > 1 else ""
-            self.recording.send_recording_name(self.recording_name + suffix)
+        self._send_recording_name()
         if self.file is None:
             self.memory = self.recording.memory_recording()
         else:
+            for stale in later_parts(self.file):  # an earlier pass's or run's: not parts of this one
+                stale.unlink()
+            self.parts = [self.file]
             self.recording.save(str(self.file), default_blueprint=default_blueprint())
-        self.recording.log("world", rr.ViewCoordinates.RDF, static=True)
-        self._log_series_styles()
         self._scalars = _ScalarColumns()
         self.history = PathHistory()
         self._full_path_length = 0  # poses in the last whole-path log
@@ -183,10 +195,12 @@ class RerunSink:
         self._plotted_lanes: set[str] = set()  # the lanes of the divergence plot with a series
         self._matches_shown = False
         self._clouds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the latest direct, feature
+        self._log_styles()
 
     # ------------------------------------------------------------------------------------ Sink protocol
 
     def on_frame(self, frame: Any, result: FrameResult) -> None:
+        self._start_part_when_due()
         self._last = (result.frame_index, result.timestamp, self._step)
         self._set_time(*self._last)
         if result.T_world_cam is not None:
@@ -205,6 +219,7 @@ class RerunSink:
         self._step += 1
 
     def on_event(self, event: Event) -> None:
+        self._start_part_when_due()  # an event goes into the part of the frame it comes before
         self._set_time(event.frame_index, event.timestamp, self._step)  # the step of the frame it comes before
         style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
@@ -247,8 +262,43 @@ class RerunSink:
         if view is not None:  # the default view, now that the scene's extent is known
             self.recording.send_blueprint(default_blueprint(view, self._timeline()), make_active=True,
                                           make_default=True)
-        self.recording.flush(timeout_sec=10.0)
+        self.recording.flush(timeout_sec=FLUSH_TIMEOUT_S)
         self.recording.disconnect()
+
+    def _start_part_when_due(self) -> None:
+        """At the first frame past the current part's ``part_frames``: the current file is finished (the SDK writes
+        its footer and lets go of its index when the stream moves to another file) and the recording goes on in the
+        next one. The blueprint stays in the first and the last part: the SDK keeps every blueprint it made until the
+        process ends (0.6-1 MiB each), so one per part would grow."""
+        if self.file is None or self.part_frames == 0 or self._step < len(self.parts) * self.part_frames:
+            return
+        self._scalars.send(self.recording)
+        self.recording.flush(timeout_sec=FLUSH_TIMEOUT_S)
+        self.parts.append(part_path(self.file, len(self.parts) + 1))
+        self.recording.save(str(self.parts[-1]))
+        self._send_recording_name()
+        self._log_scene()
+
+    def _log_scene(self) -> None:
+        """What a part opened alone needs from the frames before it, at the last of them: the styles, the camera and
+        its frustum, the whole path and the event markers. The clouds and the keyframes that move come at the next
+        keyframe; the old keyframes' frustums are in the parts where they were made (logging them all again would
+        take a second of the sink's time at a thousand keyframes)."""
+        self._log_styles()
+        if self._last is None or len(self.history) == 0:
+            return
+        self._set_time(*self._last)
+        self.recording.log(CAMERA, _transform(self.history.poses[-1]))
+        self._frustums.pop(IMAGE, None)
+        self._log_frustum(IMAGE, ESTIMATE_COLOR)
+        self._log_path(force_full=True)
+        for kind in self._markers.positions:
+            self._log_marker(kind)
+
+    def _send_recording_name(self) -> None:
+        if self.recording_name:
+            suffix = f" (pass {self.passes})" if self.passes > 1 else ""
+            self.recording.send_recording_name(self.recording_name + suffix)
 
     def _view(self) -> Framing | None:
         return framing(self.history.positions(), *self._clouds)
@@ -337,27 +387,39 @@ class RerunSink:
         """The events since the last frame, marked at ``position`` and in their lanes of the divergence plot."""
         kinds = set(event.kind for event in self._markers.place(position))
         for kind in kinds:
-            self.recording.log(f"{EVENT_MARKERS}/{kind.value}", rr.Points3D(
-                self._markers.stacked(kind, self._scale.marker), colors=kind_style(kind).color, labels=kind.value,
-                radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
-            ))
+            self._log_marker(kind)
         for lane in PLOT_LANES:
             if kinds & set(lane.kinds):
                 self._plot_in_lane(lane)
+
+    def _log_marker(self, kind: EventKind) -> None:
+        """Every marker of ``kind`` so far (one entity per kind)."""
+        self.recording.log(f"{EVENT_MARKERS}/{kind.value}", rr.Points3D(
+            self._markers.stacked(kind, self._scale.marker), colors=kind_style(kind).color, labels=kind.value,
+            radii=rr.Radius.ui_points(MARKER_RADIUS_UI),
+        ))
 
     def _plot_in_lane(self, lane: PlotLane) -> None:
         series = f"{DIVERGENCE_EVENTS}/{lane.name}"
         if lane.name not in self._plotted_lanes:
             self._plotted_lanes.add(lane.name)
-            self.recording.log(series, rr.SeriesPoints(colors=lane.color, names=lane.name,
-                                                       marker_sizes=PLOT_MARKER_SIZE), static=True)
+            self._log_lane_style(lane)
         self._add_scalar(series, lane.height)
 
-    def _log_series_styles(self) -> None:
+    def _log_styles(self) -> None:
+        """What is static: the axes of the world, the styles of the divergence plot's series and of its lanes."""
+        self.recording.log("world", rr.ViewCoordinates.RDF, static=True)
         self.recording.log(DIVERGENCE_RATIO, rr.SeriesLines(colors=DIVERGENCE_RATIO_COLOR, names="RMSE after / before",
                                                             widths=2.0), static=True)
         self.recording.log(DIVERGENCE_THRESHOLD, rr.SeriesLines(colors=DIVERGENCE_THRESHOLD_COLOR,
                                                                 names="threshold 1 + epsilon", widths=1.0), static=True)
+        for lane in PLOT_LANES:
+            if lane.name in self._plotted_lanes:
+                self._log_lane_style(lane)
+
+    def _log_lane_style(self, lane: PlotLane) -> None:
+        self.recording.log(f"{DIVERGENCE_EVENTS}/{lane.name}", rr.SeriesPoints(
+            colors=lane.color, names=lane.name, marker_sizes=PLOT_MARKER_SIZE), static=True)
 
     def _add_scalars(self, result: FrameResult) -> None:
         values = {
