@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3, se3_inverse
+from vo_core.geometry.lie import motion_angles_deg, se3, se3_inverse
 from vo_core.geometry.multiview import bearing_angles, triangulate
 
 MIN_CORRESPONDENCES = 8  # both minimal solvers use eight points
@@ -310,25 +310,27 @@ def _resolve_with_other_views(
     return None
 
 
+def _checked_motions(camera: PinholeCamera, model: str, scores: ModelScores, uv_first: np.ndarray,
+                     uv_second: np.ndarray, config: TwoViewConfig) -> tuple[list[MotionHypothesis], float]:
+    """Every motion of ``model`` checked on its inliers (ORB-SLAM CheckRT), and how many good points the best must
+    have (ORB-SLAM: 90 % of the model's inliers, and at least minTriangulated)."""
+    inliers = scores.inliers_h if model == "H" else scores.inliers_f
+    hypotheses = [_check_motion(camera, R, t, uv_first, uv_second, inliers, config)
+                  for R, t in _motion_hypotheses(model, scores, camera.K, uv_first, uv_second, config)]
+    return hypotheses, max(config.min_good_ratio * inliers.sum(), config.min_triangulated)
+
+
 def _essential_disagreement(camera: PinholeCamera, chosen: MotionHypothesis, scores: ModelScores, uv_first: np.ndarray,
                             uv_second: np.ndarray, config: TwoViewConfig) -> float:
     """The angle (degrees) between the translation of a homography's motion and that of the essential matrix of F's
     inliers, where that essential matrix explains them as a start must (0 where it does not: a pure rotation, or
     too few inliers, leaves the homography alone to say)."""
-    inliers = scores.inliers_f
-    hypotheses = [_check_motion(camera, R, t, uv_first, uv_second, inliers, config)
-                  for R, t in _motion_hypotheses("F", scores, camera.K, uv_first, uv_second, config)]
-    needed = max(config.min_good_ratio * inliers.sum(), config.min_triangulated)
+    hypotheses, needed = _checked_motions(camera, "F", scores, uv_first, uv_second, config)
     explaining = [h for h in hypotheses if h.good.sum() >= needed]
     if not explaining:
         return 0.0
     essential = max(explaining, key=lambda hypothesis: int(hypothesis.good.sum()))
-    cosine = _unit(chosen.T_first_second[:3, 3]) @ _unit(essential.T_first_second[:3, 3])
-    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
-
-
-def _unit(vector: np.ndarray) -> np.ndarray:
-    return vector / max(float(np.linalg.norm(vector)), 1e-12)
+    return motion_angles_deg(chosen.T_first_second, essential.T_first_second)[1]
 
 
 def reconstruct(
@@ -343,14 +345,9 @@ def reconstruct(
     uv_second = np.asarray(uv_second, float)
     scores = estimate_models(uv_first, uv_second, config, rng)
     model = "H" if scores.ratio > config.homography_ratio else "F"
-    inliers = scores.inliers_h if model == "H" else scores.inliers_f
-    hypotheses = [
-        _check_motion(camera, R, t, uv_first, uv_second, inliers, config)
-        for R, t in _motion_hypotheses(model, scores, camera.K, uv_first, uv_second, config)
-    ]
+    hypotheses, needed = _checked_motions(camera, model, scores, uv_first, uv_second, config)
     counts = [int(h.good.sum()) for h in hypotheses]
     best_count = max(counts, default=0)
-    needed = max(config.min_good_ratio * inliers.sum(), config.min_triangulated)
     prefix = f"{model} (R_H {scores.ratio:.2f})"
     if best_count < needed:
         raise TwoViewFailure(f"{prefix}: best motion explains {best_count} points, needs {needed:.0f}")
