@@ -14,7 +14,8 @@ from vo_core.direct.config import DirectConfig
 from vo_core.direct.pyramid import ImagePyramid
 from vo_core.events import EventKind
 from vo_core.geometry.lie import se3_inverse, so3_log
-from vo_core.init.config import InitConfig
+from vo_core.geometry.klt import CornerConfig
+from vo_core.init.config import FeatureTrackConfig, InitConfig
 from vo_core.init.feature_initializer import FeatureInitializer
 from vo_core.init.registry import make_initializer
 from vo_core.synthetic import make_sequence
@@ -67,6 +68,20 @@ def test_no_initialization_without_translation(preset, reason):
     assert result is None
     assert status["stage"] == "rejected"
     assert re.search(reason, status["reason"])
+
+
+def test_a_reference_is_kept_while_a_start_can_come_from_it():
+    """70 corners, fewer than the 80 tracks this initializer once asked for, but more than the 50 points a start
+    needs (VAMR parking has about 100, of which 50-80 survive at a third of its frame rate): the start comes from
+    them; with fewer than 50 it cannot, and the reference is given up for that reason."""
+    def corners(count: int) -> InitConfig:
+        return InitConfig(tracks=FeatureTrackConfig(corners=CornerConfig(max_corners=count, min_distance=10.0)))
+
+    result, status, *_ = run_initializer("smooth", init_config=corners(70))
+    assert result is not None, status
+    assert 50 <= result.details["points"] <= 70
+    result, status, *_ = run_initializer("smooth", init_config=corners(45))
+    assert result is None and "fewer than the 50 a start needs" in status["reason"]
 
 
 def test_direct_odometry_tracks_after_the_feature_initializer():

@@ -19,7 +19,6 @@ class FeatureTrackConfig:
     """Set-up routine (004 section 3.1): corners in the reference frame, KLT frame to frame, 1 -> 2 -> 1 check."""
 
     num_frames: int = 4  # 3.1: N = 4 frames (the reference and 3 tracked ones) before the first attempt
-    min_tracks: int = 80  # 3.1 / Algorithm 1 MIN_NUM_MATCHES (value not given; ours): fewer -> new reference
     min_median_flow_px: float = 1.0  # no two-view attempt while the tracks barely moved (ours): "no motion"
     corners: CornerConfig = field(default_factory=lambda: CornerConfig(max_corners=1000, min_distance=10.0))
     klt: KltTrackerConfig = field(default_factory=KltTrackerConfig)  # forward-backward error below 1 px

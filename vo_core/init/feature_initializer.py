@@ -1,7 +1,7 @@
 """The feature-based initializer of the direct system (paper 004, Algorithm 1 "trackFrame").
 
-1. Corners in the reference frame, tracked frame to frame by KLT with a forward-backward check (3.1); too
-   few surviving tracks give up this reference (the odometry then starts again from its next frame).
+1. Corners in the reference frame, tracked frame to frame by KLT with a forward-backward check (3.1); fewer
+   surviving tracks than a start needs give up this reference (the odometry then starts again from its next frame).
 2. From the N-th frame on (N = 4), each frame is tried against the reference: homography and fundamental
    matrix in parallel, model selection, decomposition and cheirality (3.2, vo_core/geometry/two_view.py), with
    ORB-SLAM's acceptance rules (1 degree of parallax, 50 well-triangulated points explaining 90 % of the
@@ -112,8 +112,12 @@ class FeatureInitializer:
         self.pyramids.append(pyramid)
         self.exposures.append(exposure)
         self._status = {"stage": "tracking", "tracks_kept": alive, "frames": tracks.num_frames}
-        if alive < self.config.tracks.min_tracks:
-            self._reject(f"{alive} tracks survived, fewer than {self.config.tracks.min_tracks}: new reference")
+        # Algorithm 1's MIN_NUM_MATCHES (its value not given): the reference is given up once no start can come from
+        # it, with fewer tracks than a start's well-triangulated points (ORB-SLAM's minTriangulated). A count of our
+        # own (80) gave up VAMR parking's references (about 100 corners) at a third of its frame rate until frame 45.
+        needed = self.config.two_view.min_triangulated
+        if alive < needed:
+            self._reject(f"{alive} tracks survived, fewer than the {needed} a start needs: new reference")
             self.tracks = None  # not started: the odometry hands the next frame as the new reference
             return None
         if tracks.num_frames < self.config.tracks.num_frames:
