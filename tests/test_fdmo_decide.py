@@ -270,7 +270,7 @@ AFTER = [
     After("... which goes on where it is not elsewhere",
           RecoveredEvidence(0.3, aligned(12.0), DIVERGED_ALIGNMENT, 0.5, None, None, 20, None),
           Continuation(Next.RESUME, "direct", TOO_FEW.format(20), points=20)),
-    After("no direct alignment (feature tracking, a scale jump): a restart with 50 feature depths",
+    After("no direct alignment (feature tracking): a restart with a start's 50 feature depths",
           RecoveredEvidence(0.2, restart_points=50), Continuation(Next.RESTART, points=50)),
     After("... and feature tracking with fewer",
           RecoveredEvidence(0.2, restart_points=49), Continuation(Next.FEATURE_TRACKING, points=49)),

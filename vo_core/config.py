@@ -80,11 +80,10 @@ class HybridConfig:
     # Frames in a row without a pose (no direct tracking, no recovery) before the direct map initializes again
     # from scratch, at a new scale (ours; recovery keeps being tried meanwhile, and after).
     lost_frames_before_reinitialization: int = 10
-    # A direct map restarted at a recovered pose needs this many feature points in view for its depths (ours;
-    # DSO's tracker needs 20 points, setting_minPointsInView).
-    min_restart_points: int = 50
-    # ... of points observed by at least this many keyframes: a point seen by two is as uncertain in depth as their
-    # baseline makes it (ORB-SLAM2's MapPointCulling keeps a monocular point only once more than 2 keyframes see it).
+    # A direct map restarted at a recovered pose takes its depths from the feature points in view, as many as a start
+    # needs (init.two_view.min_triangulated, ORB-SLAM's 50), of points observed by at least this many keyframes: a
+    # point seen by two is as uncertain in depth as their baseline makes it (ORB-SLAM2's MapPointCulling keeps a
+    # monocular point only once more than 2 keyframes see it).
     # Teddy, 13 frames missed right after the start: a restart on the start's 75 two-view points (3 frames apart)
     # collapsed the scale 10x, unreported (ATE 0.09-0.13 m at 3 seeds of 4; the same window: 0.005-0.006 m). With
     # fewer, the better fit of the two direct alignments goes on in the same window.

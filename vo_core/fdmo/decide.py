@@ -232,8 +232,9 @@ def after_recovery(evidence: RecoveredEvidence, config) -> Continuation:
     on. Unless the recovery puts the camera elsewhere than the motion model's alignment (it explains under
     ``fdmo.elsewhere_share`` of a conclusive recovery's inliers), which is then not kept. Otherwise the direct map
     restarts at the recovered pose (at the alignment from it where that agrees with the feature map,
-    ``fdmo.agreement``) with ``fdmo.min_restart_points`` feature depths or more; with fewer, the better fit of the
-    converged alignments goes on; with none, feature tracking."""
+    ``fdmo.agreement``) with as many feature depths as a start needs well-triangulated points
+    (``init.two_view.min_triangulated``: a restart is a start from the feature map's depths) or more; with fewer, the
+    better fit of the converged alignments goes on; with none, feature tracking."""
     fdmo = config.fdmo
     direct, retracked = evidence.direct, evidence.retracked
     elsewhere = (direct is not None and direct.converged and evidence.found_fraction >= fdmo.overrule_share
@@ -248,7 +249,7 @@ def after_recovery(evidence: RecoveredEvidence, config) -> Continuation:
     refined = (retracked is not None and retracked.converged
                and evidence.retracked_explained >= fdmo.agreement)
     points = evidence.restart_points_retracked if refined else evidence.restart_points
-    if points >= fdmo.min_restart_points:
+    if points >= config.init.two_view.min_triangulated:
         return Continuation(Next.RESTART, refined=refined, points=points)
     converged = [(name, a) for name, a in (("direct", direct), ("retracked", retracked))
                  if a is not None and a.converged and not (name == "direct" and elsewhere)]
