@@ -107,11 +107,13 @@ class MappingConfig:
     # The feature half's process (features/feature_process.py) runs this much nicer than tracking and the direct
     # mapper: it is behind neither (tracking waits for the direct reference, the feature map only has to keep up),
     # so on a busy machine the cores go to them first. 0: the same priority. Offline the feature map is only waited
-    # for before a recovery and at the end (19: the window optimization ran 20 % longer beside it at 10); live, a
-    # suspect frame's check waits for it while frames arrive (19 processed 37-136 of teddy's 200 frames at 30 Hz,
-    # 10: 146-165). Measured in BENCHMARKS.md (Real time).
+    # for before a recovery and at the end (19: the window optimization ran 20 % longer beside it at 10). Live, a
+    # suspect frame's check and every recovery wait for it while frames arrive, so it runs at tracking's own
+    # priority: a nicer process that tracking waits for is a priority inversion, and any other work on the machine
+    # takes the cores from it while tracking waits (teddy at 30 Hz beside one busy process, 4 runs each: at 10, 10 %
+    # of the frames processed and every run lost, 0.26 m; at 0, 71 % and none lost, 0.011 m). BENCHMARKS.md: Live.
     feature_niceness: int = 19
-    live_feature_niceness: int = 10
+    live_feature_niceness: int = 0
     # Offline the feature process also runs in Linux's idle scheduling class (SCHED_IDLE), below any niceness: at 19
     # alone, parking's window optimizations took 3.44 s beside it against 2.87 s without it; idle, 3.1 s (threaded
     # runs, 4 rounds: teddy 8.72 -> 8.48 s, parking 10.33 -> 10.16 s, KITTI the same). Not live, where a suspect
