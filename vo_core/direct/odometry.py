@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
@@ -260,6 +261,11 @@ class DirectOdometry:
         self.scale_watch = ScaleWatch(config.scale_watch)
         self.start_check: StartCheck | None = None  # the current start's check (on probation until it passed)
         self.start_failure: str | None = None  # why the start on probation fails, set at a window optimization
+        # A frame that is no keyframe has its immature points traced on a thread of its own, beside the next frame's
+        # tracking, which does not read them (the trace's kernel releases the interpreter's lock); whatever reads or
+        # changes them or the window waits for it first (``_traced``), so the order of the work is the same.
+        self._tracer: ThreadPoolExecutor | None = None  # made on first use
+        self._tracing: Future | None = None  # the trace running there
 
     @property
     def initialized(self) -> bool:
@@ -291,6 +297,7 @@ class DirectOdometry:
     def initialize(self, frame: DirectFrame, result: FrameResult) -> InitializationResult | None:
         """Feed the initializer; when it succeeds, the first two keyframes are made (the frame gets its pose)
         and its outcome is returned."""
+        self._traced()
         start = time.perf_counter()
         if not self.initializer.started:
             self.initializer.set_first(frame.index, frame.pyramid, frame.exposure)
@@ -411,11 +418,14 @@ class DirectOdometry:
         on probation that fails at this keyframe is discarded here, or, off the tracking thread
         (``discard_failed_start`` False), left to ``discard_failed_start`` at the next frame."""
         T_world_cam, affine = tracking.T_world_cam, tracking.result.affine
+        self._traced()
         start = time.perf_counter()
+        if not make_keyframe:
+            self._trace_beside(frame, T_world_cam, affine)
+            result.timings_ms["trace"] = _ms_since(start)
+            return None
         self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
         result.timings_ms["trace"] = _ms_since(start)
-        if not make_keyframe:
-            return None
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
@@ -434,6 +444,7 @@ class DirectOdometry:
         """Where a keyframe mapped off the tracking thread, or the witness beside mapping, failed the start on
         probation: the start is discarded and the initializer starts again from this frame (which gets no pose).
         Returns whether it was."""
+        self._traced()
         if self.failed_start is None:
             return False
         self._discard_start(frame, result)
@@ -445,6 +456,7 @@ class DirectOdometry:
         ``keep_window`` the old window stays until the new map exists: ``track`` still aligns against it and
         ``resume`` takes it back (FDMO keeps trying its old map while the new one initializes); without, it is
         forgotten at once (DSO)."""
+        self._traced()
         self.T_world_origin = np.array(T_world_origin, dtype=float)
         if not keep_window:
             self._forget_map(failed_initializer=None)
@@ -468,6 +480,7 @@ class DirectOdometry:
 
     def resume(self) -> None:
         """Back to the kept window: the initialization that was to replace it is dropped."""
+        self._traced()
         self.state = _State.TRACKING
         self.initializer = self.make_initializer(None)
 
@@ -487,6 +500,7 @@ class DirectOdometry:
         """A new direct map at a pose found elsewhere, with depths found elsewhere (FDMO: the recovered pose and
         the feature points in view): the frame becomes the only keyframe, hosting those points, so the world
         frame and the scale go on. The window and its prior start over."""
+        self._traced()
         keyframe = Keyframe(
             frame.index, frame.timestamp, frame.frame.image, frame.pyramid, np.array(T_world_cam, float),
             np.zeros(2), frame.exposure,
@@ -605,6 +619,18 @@ class DirectOdometry:
         return best, prior_rmse, achieved, tried
 
     # ------------------------------------------------------------------------------------ points
+
+    def _trace_beside(self, frame: DirectFrame, T_world_cam: np.ndarray, affine: np.ndarray) -> None:
+        """``_trace`` on the tracer's thread (see ``__init__``)."""
+        if self._tracer is None:
+            self._tracer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-trace")
+        self._tracing = self._tracer.submit(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
+
+    def _traced(self) -> None:
+        """Waits for a trace running beside tracking to end (an error it raised is raised here)."""
+        tracing, self._tracing = self._tracing, None
+        if tracing is not None:
+            tracing.result()
 
     def _trace(self, pyramid: ImagePyramid, T_world_cam: np.ndarray, affine: np.ndarray, exposure) -> None:
         """traceNewCoarse: every window keyframe's immature points along their epipolar lines in this frame."""
@@ -882,6 +908,7 @@ class DirectOdometry:
     # ------------------------------------------------------------------------------------ map
 
     def map_snapshot(self) -> MapSnapshot:
+        self._traced()
         points, idepths = [], []
         for keyframe in self.keyframes:
             if len(keyframe.active_idepth):
