@@ -319,6 +319,7 @@ class Odometry:
         # Offline, a start on probation is mapped here too: one that fails is discarded at the frame it fails at.
         inline = not self.direct.initialized or (self.direct.on_probation and self.config.mapping.wait_for_keyframes)
         if self.mapper is None or inline:
+            self._describe_ahead(frame, tracking)
             self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
             return
         # Offline the frame is accepted while the last keyframe is still being mapped: its tracing, or the keyframe it
@@ -577,6 +578,13 @@ class Odometry:
         self.lost_frames, self.lost_since = 0, None
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
+
+    def _describe_ahead(self, frame: DirectFrame, tracking: DirectTracking) -> None:
+        """Synchronously, a frame that becomes a direct keyframe has its ORB features extracted on a thread of the
+        feature half while the direct half maps it, for the feature keyframe that follows (with mapping threads the
+        feature half maps in a process of its own, beside the direct mapper)."""
+        if self.mapper is None and self.features is not None and self.direct.wants_keyframe(frame, tracking):
+            self.features.describe_ahead(frame.index, frame.frame.image)
 
     def _grow_feature_map(self, keyframe: Keyframe | None, result: FrameResult) -> None:
         if self.features is not None and (keyframe is not None or result.is_keyframe):
