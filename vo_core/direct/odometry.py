@@ -261,10 +261,12 @@ class DirectOdometry:
         self.scale_watch = ScaleWatch(config.scale_watch)
         self.start_check: StartCheck | None = None  # the current start's check (on probation until it passed)
         self.start_failure: str | None = None  # why the start on probation fails, set at a window optimization
-        # A frame that is no keyframe has its immature points traced on a thread of its own, beside the next frame's
-        # tracking, which does not read them (the trace's kernel releases the interpreter's lock); whatever reads or
-        # changes them or the window waits for it first (``_traced``), so the order of the work is the same.
-        self._tracer: ThreadPoolExecutor | None = None  # made on first use
+        # Work on a thread beside the tracking thread, whose compiled kernels release the interpreter's lock as
+        # those on this one do: a frame that is no keyframe has its immature points traced there while the next frame
+        # is tracked, which does not read them (whatever reads or changes them or the window waits for the trace
+        # first: ``_traced``, so the order of the work is the same), and a new keyframe selects its immature points
+        # there while the window is optimized.
+        self._beside: ThreadPoolExecutor | None = None  # made on first use
         self._tracing: Future | None = None  # the trace running there
 
     @property
@@ -515,8 +517,7 @@ class DirectOdometry:
         self._reset_rmse()
         self.scale_watch.reset()  # a new window: nothing to compare its first keyframes with
         self._end_start_check()  # the feature map's points, not an initializer's start
-        selection = self.selector.select(frame.pyramid, self.config.immature.density)
-        keyframe.immature = ImmaturePoints.create(frame.pyramid, selection.uv, selection.kind, self.config.immature)
+        keyframe.immature = self._new_immature_points(frame.pyramid)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         self._set_tracking_reference(keyframe)
         result.T_world_cam = keyframe.T_world_cam.copy()
@@ -620,11 +621,14 @@ class DirectOdometry:
 
     # ------------------------------------------------------------------------------------ points
 
+    def _run_beside(self, work: Callable, *args) -> Future:
+        """``work(*args)`` on the thread beside tracking (see ``__init__``)."""
+        if self._beside is None:
+            self._beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-direct-beside")
+        return self._beside.submit(work, *args)
+
     def _trace_beside(self, frame: DirectFrame, T_world_cam: np.ndarray, affine: np.ndarray) -> None:
-        """``_trace`` on the tracer's thread (see ``__init__``)."""
-        if self._tracer is None:
-            self._tracer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-trace")
-        self._tracing = self._tracer.submit(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
+        self._tracing = self._run_beside(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
 
     def _traced(self) -> None:
         """Waits for a trace running beside tracking to end (an error it raised is raised here)."""
@@ -655,6 +659,7 @@ class DirectOdometry:
         # one, hand tracking the new reference (setCoarseTrackingRef: the leaving keyframes' points included), then
         # marginalize them (so the prior links them to the newest keyframe too) and select the new candidates.
         # With a mapping thread, tracking goes on from the reference on while the rest is mapped.
+        selecting = self._run_beside(self._new_immature_points, pyramid)
         dropped = self._keyframes_to_marginalize(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
@@ -665,8 +670,7 @@ class DirectOdometry:
         for frame_index in dropped:
             self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
                               frame, result)
-        selection = self.selector.select(pyramid, self.config.immature.density)
-        keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
+        keyframe.immature = selecting.result()
         for older in self.keyframes[:-1]:
             older.pyramid.release_packed()  # from here on read through their intensities
         result.is_keyframe = True
@@ -686,6 +690,11 @@ class DirectOdometry:
             )
         )
         return keyframe
+
+    def _new_immature_points(self, pyramid: ImagePyramid) -> ImmaturePoints:
+        """A new keyframe's candidate points (DSO's makeMaps and its ImmaturePoints)."""
+        selection = self.selector.select(pyramid, self.config.immature.density)
+        return ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
 
     def _optimize_window(self, frame, result: FrameResult) -> None:
         """FullSystem::optimize: the joint photometric bundle adjustment of the window; the frame that became
