@@ -101,6 +101,7 @@ class Odometry:
         self.switch_interval_before = sys.getswitchinterval()  # Python's, given back at close
         if self.mapper is not None:
             self.direct.reference_published = self.mapper.release_tracking
+            self.direct.works_beside_tracking = False
             sys.setswitchinterval(mapping.switch_interval_s)
         # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
         # its feature mapping in a thread of its own too); the thread waits while the feature half's process maps.

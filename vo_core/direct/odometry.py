@@ -261,11 +261,13 @@ class DirectOdometry:
         self.scale_watch = ScaleWatch(config.scale_watch)
         self.start_check: StartCheck | None = None  # the current start's check (on probation until it passed)
         self.start_failure: str | None = None  # why the start on probation fails, set at a window optimization
-        # Work on a thread beside the tracking thread, whose compiled kernels release the interpreter's lock as
-        # those on this one do: a frame that is no keyframe has its immature points traced there while the next frame
-        # is tracked, which does not read them (whatever reads or changes them or the window waits for the trace
-        # first: ``_traced``, so the order of the work is the same), and a new keyframe selects its immature points
-        # there while the window is optimized.
+        # Work on a thread beside the tracking thread where mapping runs on that one, whose compiled kernels release
+        # the interpreter's lock as those on this one do: a frame that is no keyframe has its immature points traced
+        # there while the next frame is tracked, which does not read them (whatever reads or changes them or the
+        # window waits for the trace first: ``_traced``, so the order of the work is the same), and a new keyframe
+        # selects its immature points there while the window is optimized. A mapping thread (system.py) is the one
+        # beside tracking, and does this work itself.
+        self.works_beside_tracking = True
         self._beside: ThreadPoolExecutor | None = None  # made on first use
         self._tracing: Future | None = None  # the trace running there
 
@@ -422,12 +424,13 @@ class DirectOdometry:
         T_world_cam, affine = tracking.T_world_cam, tracking.result.affine
         self._traced()
         start = time.perf_counter()
-        if not make_keyframe:
-            self._trace_beside(frame, T_world_cam, affine)
-            result.timings_ms["trace"] = _ms_since(start)
-            return None
-        self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
+        if make_keyframe or not self.works_beside_tracking:
+            self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
+        else:
+            self._tracing = self._run_beside(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
         result.timings_ms["trace"] = _ms_since(start)
+        if not make_keyframe:
+            return None
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
         result.timings_ms["keyframe"] = _ms_since(start)
@@ -627,9 +630,6 @@ class DirectOdometry:
             self._beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-direct-beside")
         return self._beside.submit(work, *args)
 
-    def _trace_beside(self, frame: DirectFrame, T_world_cam: np.ndarray, affine: np.ndarray) -> None:
-        self._tracing = self._run_beside(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
-
     def _traced(self) -> None:
         """Waits for a trace running beside tracking to end (an error it raised is raised here)."""
         tracing, self._tracing = self._tracing, None
@@ -659,7 +659,8 @@ class DirectOdometry:
         # one, hand tracking the new reference (setCoarseTrackingRef: the leaving keyframes' points included), then
         # marginalize them (so the prior links them to the newest keyframe too) and select the new candidates.
         # With a mapping thread, tracking goes on from the reference on while the rest is mapped.
-        selecting = self._run_beside(self._new_immature_points, pyramid)
+        # Beside tracking the candidates are selected meanwhile (nothing else draws from the selector).
+        selecting = self._run_beside(self._new_immature_points, pyramid) if self.works_beside_tracking else None
         dropped = self._keyframes_to_marginalize(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
@@ -670,7 +671,7 @@ class DirectOdometry:
         for frame_index in dropped:
             self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
                               frame, result)
-        keyframe.immature = selecting.result()
+        keyframe.immature = self._new_immature_points(pyramid) if selecting is None else selecting.result()
         for older in self.keyframes[:-1]:
             older.pyramid.release_packed()  # from here on read through their intensities
         result.is_keyframe = True
