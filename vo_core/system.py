@@ -101,6 +101,7 @@ class Odometry:
         self.switch_interval_before = sys.getswitchinterval()  # Python's, given back at close
         if self.mapper is not None:
             self.direct.reference_published = self.mapper.release_tracking
+            self.direct.works_beside_tracking = False
             sys.setswitchinterval(mapping.switch_interval_s)
         # The feature map grows beside the direct mapping, from the keyframes the direct mapper hands it (FDMO runs
         # its feature mapping in a thread of its own too); the thread waits while the feature half's process maps.
@@ -256,8 +257,12 @@ class Odometry:
         """A frame whose image is the previous frame's, bit for bit, is a camera or driver that stalled: it says
         nothing new about the motion, and a pose for it (the previous one) would be wrong by however far the
         camera went meanwhile. It gets no pose, with the reason; the frames after it are a jump."""
-        previous, self.previous_image = self.previous_image, raw_frame.image
-        if previous is None or previous.shape != raw_frame.image.shape or not np.array_equal(previous, raw_frame.image):
+        image = raw_frame.image
+        previous, self.previous_image = self.previous_image, image
+        # Compared as buffers: pixel by pixel up to the first difference (in a frame's first row, unless the camera
+        # stalled), holding the interpreter's lock. np.array_equal compared every pixel with the lock released, and
+        # the frame-reading thread took it meanwhile: teddy's frames waited 1.2 ms each to get it back.
+        if previous is None or previous.shape != image.shape or memoryview(previous) != memoryview(image):
             self.repeated_since = raw_frame.index
             return False
         _emit(result, EventKind.FRAME_REPEATED, {"same_as_frame": self.repeated_since})
@@ -319,6 +324,7 @@ class Odometry:
         # Offline, a start on probation is mapped here too: one that fails is discarded at the frame it fails at.
         inline = not self.direct.initialized or (self.direct.on_probation and self.config.mapping.wait_for_keyframes)
         if self.mapper is None or inline:
+            self._describe_ahead(frame, tracking)
             self._grow_feature_map(self.direct.accept(frame, tracking, result), result)
             return
         # Offline the frame is accepted while the last keyframe is still being mapped: its tracing, or the keyframe it
@@ -577,6 +583,13 @@ class Odometry:
         self.lost_frames, self.lost_since = 0, None
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
+
+    def _describe_ahead(self, frame: DirectFrame, tracking: DirectTracking) -> None:
+        """Synchronously, a frame that becomes a direct keyframe has its ORB features extracted on a thread of the
+        feature half while the direct half maps it, for the feature keyframe that follows (with mapping threads the
+        feature half maps in a process of its own, beside the direct mapper)."""
+        if self.mapper is None and self.features is not None and self.direct.wants_keyframe(frame, tracking):
+            self.features.describe_ahead(frame.index, frame.frame.image)
 
     def _grow_feature_map(self, keyframe: Keyframe | None, result: FrameResult) -> None:
         if self.features is not None and (keyframe is not None or result.is_keyframe):

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
@@ -260,6 +261,15 @@ class DirectOdometry:
         self.scale_watch = ScaleWatch(config.scale_watch)
         self.start_check: StartCheck | None = None  # the current start's check (on probation until it passed)
         self.start_failure: str | None = None  # why the start on probation fails, set at a window optimization
+        # Work on a thread beside the tracking thread where mapping runs on that one, whose compiled kernels release
+        # the interpreter's lock as those on this one do: a frame that is no keyframe has its immature points traced
+        # there while the next frame is tracked, which does not read them (whatever reads or changes them or the
+        # window waits for the trace first: ``_traced``, so the order of the work is the same), and a new keyframe
+        # selects its immature points there while the window is optimized. A mapping thread (system.py) is the one
+        # beside tracking, and does this work itself.
+        self.works_beside_tracking = True
+        self._beside: ThreadPoolExecutor | None = None  # made on first use
+        self._tracing: Future | None = None  # the trace running there
 
     @property
     def initialized(self) -> bool:
@@ -291,6 +301,7 @@ class DirectOdometry:
     def initialize(self, frame: DirectFrame, result: FrameResult) -> InitializationResult | None:
         """Feed the initializer; when it succeeds, the first two keyframes are made (the frame gets its pose)
         and its outcome is returned."""
+        self._traced()
         start = time.perf_counter()
         if not self.initializer.started:
             self.initializer.set_first(frame.index, frame.pyramid, frame.exposure)
@@ -411,8 +422,12 @@ class DirectOdometry:
         on probation that fails at this keyframe is discarded here, or, off the tracking thread
         (``discard_failed_start`` False), left to ``discard_failed_start`` at the next frame."""
         T_world_cam, affine = tracking.T_world_cam, tracking.result.affine
+        self._traced()
         start = time.perf_counter()
-        self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
+        if make_keyframe or not self.works_beside_tracking:
+            self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
+        else:
+            self._tracing = self._run_beside(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
         result.timings_ms["trace"] = _ms_since(start)
         if not make_keyframe:
             return None
@@ -434,6 +449,7 @@ class DirectOdometry:
         """Where a keyframe mapped off the tracking thread, or the witness beside mapping, failed the start on
         probation: the start is discarded and the initializer starts again from this frame (which gets no pose).
         Returns whether it was."""
+        self._traced()
         if self.failed_start is None:
             return False
         self._discard_start(frame, result)
@@ -445,6 +461,7 @@ class DirectOdometry:
         ``keep_window`` the old window stays until the new map exists: ``track`` still aligns against it and
         ``resume`` takes it back (FDMO keeps trying its old map while the new one initializes); without, it is
         forgotten at once (DSO)."""
+        self._traced()
         self.T_world_origin = np.array(T_world_origin, dtype=float)
         if not keep_window:
             self._forget_map(failed_initializer=None)
@@ -468,6 +485,7 @@ class DirectOdometry:
 
     def resume(self) -> None:
         """Back to the kept window: the initialization that was to replace it is dropped."""
+        self._traced()
         self.state = _State.TRACKING
         self.initializer = self.make_initializer(None)
 
@@ -487,6 +505,7 @@ class DirectOdometry:
         """A new direct map at a pose found elsewhere, with depths found elsewhere (FDMO: the recovered pose and
         the feature points in view): the frame becomes the only keyframe, hosting those points, so the world
         frame and the scale go on. The window and its prior start over."""
+        self._traced()
         keyframe = Keyframe(
             frame.index, frame.timestamp, frame.frame.image, frame.pyramid, np.array(T_world_cam, float),
             np.zeros(2), frame.exposure,
@@ -501,8 +520,7 @@ class DirectOdometry:
         self._reset_rmse()
         self.scale_watch.reset()  # a new window: nothing to compare its first keyframes with
         self._end_start_check()  # the feature map's points, not an initializer's start
-        selection = self.selector.select(frame.pyramid, self.config.immature.density)
-        keyframe.immature = ImmaturePoints.create(frame.pyramid, selection.uv, selection.kind, self.config.immature)
+        keyframe.immature = self._new_immature_points(frame.pyramid)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         self._set_tracking_reference(keyframe)
         result.T_world_cam = keyframe.T_world_cam.copy()
@@ -606,6 +624,18 @@ class DirectOdometry:
 
     # ------------------------------------------------------------------------------------ points
 
+    def _run_beside(self, work: Callable, *args) -> Future:
+        """``work(*args)`` on the thread beside tracking (see ``__init__``)."""
+        if self._beside is None:
+            self._beside = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-direct-beside")
+        return self._beside.submit(work, *args)
+
+    def _traced(self) -> None:
+        """Waits for a trace running beside tracking to end (an error it raised is raised here)."""
+        tracing, self._tracing = self._tracing, None
+        if tracing is not None:
+            tracing.result()
+
     def _trace(self, pyramid: ImagePyramid, T_world_cam: np.ndarray, affine: np.ndarray, exposure) -> None:
         """traceNewCoarse: every window keyframe's immature points along their epipolar lines in this frame."""
         T_cam_world = se3_inverse(T_world_cam)
@@ -629,6 +659,8 @@ class DirectOdometry:
         # one, hand tracking the new reference (setCoarseTrackingRef: the leaving keyframes' points included), then
         # marginalize them (so the prior links them to the newest keyframe too) and select the new candidates.
         # With a mapping thread, tracking goes on from the reference on while the rest is mapped.
+        # Beside tracking the candidates are selected meanwhile (nothing else draws from the selector).
+        selecting = self._run_beside(self._new_immature_points, pyramid) if self.works_beside_tracking else None
         dropped = self._keyframes_to_marginalize(keyframe)
         activated = self._activate_points(keyframe)
         self.keyframes.append(keyframe)
@@ -639,8 +671,7 @@ class DirectOdometry:
         for frame_index in dropped:
             self._marginalize(next(i for i, k in enumerate(self.keyframes) if k.frame_index == frame_index),
                               frame, result)
-        selection = self.selector.select(pyramid, self.config.immature.density)
-        keyframe.immature = ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
+        keyframe.immature = self._new_immature_points(pyramid) if selecting is None else selecting.result()
         for older in self.keyframes[:-1]:
             older.pyramid.release_packed()  # from here on read through their intensities
         result.is_keyframe = True
@@ -660,6 +691,11 @@ class DirectOdometry:
             )
         )
         return keyframe
+
+    def _new_immature_points(self, pyramid: ImagePyramid) -> ImmaturePoints:
+        """A new keyframe's candidate points (DSO's makeMaps and its ImmaturePoints)."""
+        selection = self.selector.select(pyramid, self.config.immature.density)
+        return ImmaturePoints.create(pyramid, selection.uv, selection.kind, self.config.immature)
 
     def _optimize_window(self, frame, result: FrameResult) -> None:
         """FullSystem::optimize: the joint photometric bundle adjustment of the window; the frame that became
@@ -882,6 +918,7 @@ class DirectOdometry:
     # ------------------------------------------------------------------------------------ map
 
     def map_snapshot(self) -> MapSnapshot:
+        self._traced()
         points, idepths = [], []
         for keyframe in self.keyframes:
             if len(keyframe.active_idepth):

@@ -50,6 +50,10 @@ class FeatureOdometry:
         return self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
                                         set(window_poses))
 
+    def describe_ahead(self, frame_index: int, image: np.ndarray) -> None:
+        """The image of a frame the direct half is making a keyframe, described while it does (FeatureMapper)."""
+        self.mapper.describe_ahead(frame_index, image)
+
     def add_initial_tracks(self, first: int, second: int, uv_first: np.ndarray, uv_second: np.ndarray,
                            points_world: np.ndarray) -> int:
         """The feature initializer's tracks and their triangulated points start the map (FDMO part 1)."""
@@ -90,4 +94,5 @@ class FeatureOdometry:
         return {k.frame_index: k.T_world_cam for k in self.map.keyframes.values()}
 
     def close(self) -> None:
-        """Nothing to release here (``FeatureProcess`` ends its process)."""
+        """The mapper's describing thread ends (``FeatureProcess`` ends its process)."""
+        self.mapper.close()
