@@ -200,7 +200,8 @@ class Odometry:
         return snapshot
 
     def close(self) -> None:
-        """The mapper maps what it has and stops; what it produced reaches the sinks; then they close."""
+        """The mapper maps what it has and stops; what it produced reaches the sinks; the threads beside tracking end;
+        then the sinks close."""
         if self.mapper is not None:
             self.flush()
             self.mapper.close()
@@ -209,6 +210,8 @@ class Odometry:
             sys.setswitchinterval(self.switch_interval_before)
         if self.features is not None:
             self.features.close()
+        if self.front_end is None:
+            self.direct.close()
         self.bus.close()
 
     # ------------------------------------------------------------------------------------ FDMO Fig. 2

@@ -624,6 +624,13 @@ class DirectOdometry:
 
     # ------------------------------------------------------------------------------------ points
 
+    def close(self) -> None:
+        """The thread beside tracking ends, once the trace it may be running is done (made again if used again)."""
+        self._traced()
+        if self._beside is not None:
+            self._beside.shutdown()
+            self._beside = None
+
     def _run_beside(self, work: Callable, *args) -> Future:
         """``work(*args)`` on the thread beside tracking (see ``__init__``)."""
         if self._beside is None:
