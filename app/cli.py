@@ -130,6 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", type=Path, help="YAML configuration (the format of config.yaml)")
     run.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                      help="override one setting, e.g. --set direct.tracker.huber_threshold=9 (repeatable)")
+    run.add_argument("--loop-closure", action="store_true",
+                     help="close loops over the feature map (fdmo: FDMO as SLAM; off: the paper's odometry)")
     run.add_argument("--start", type=int, help="first frame (position in the sequence)")
     run.add_argument("--end", type=int, help="stop before this frame")
     run.add_argument("--drop", dest="drops", type=_drop, action="append", default=[], metavar="FRAME:COUNT",
@@ -282,7 +284,8 @@ def _announce_kernel_build() -> None:
 def run_config(args: argparse.Namespace) -> Config:
     """The configuration of ``fdmo run``: the file's (or the defaults), then what the options change, then the user's
     own --set, then --method."""
-    overrides = [*_live_overrides(args), *args.overrides, *([f"method={args.method}"] if args.method else [])]
+    overrides = [*_live_overrides(args), *(["features.loop_closing.enabled=true"] if args.loop_closure else []),
+                 *args.overrides, *([f"method={args.method}"] if args.method else [])]
     return load_config(args.config, overrides)
 
 

@@ -40,6 +40,8 @@ class EventKind(str, Enum):
     FEATURE_KEYFRAME_ADDED = "feature_keyframe_added"  # FDMO 4.3: the feature map grew at a direct keyframe
     FEATURE_KEYFRAME_CULLED = "feature_keyframe_culled"  # FDMO 4.4: redundant, its direct twin marginalized
     KEYFRAME_MARGINALIZED = "keyframe_marginalized"
+    LOOP_CANDIDATE = "loop_candidate"  # a place the bag of words recognised, taken or refused and why
+    LOOP_CLOSED = "loop_closed"  # a loop corrected the map: each keyframe's correction moves the poses before it
     SCALE_JUMP = "scale_jump"  # the direct map's scale jumped or collapsed at a keyframe
     MAP_POINTS_CULLED = "map_points_culled"
     WINDOW_OPTIMIZED = "window_optimized"

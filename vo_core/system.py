@@ -45,6 +45,7 @@ from vo_core.direct.divergence import Judgement, Verdict, judge, rounded_rmse
 from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.features.config import FeatureConfig
+from vo_core.features.loop_closing import LoopReport
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide
 from vo_core.fdmo.evidence import Evidence, gather, gather_recovered
@@ -112,6 +113,7 @@ class Odometry:
         self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.feature_keyframes_given: set[int] = set()  # direct keyframes handed to the feature map since it started
+        self.map_start: float | None = None  # the feature map's first keyframe's time: a loop moves the poses after it
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
@@ -616,6 +618,8 @@ class Odometry:
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
         new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth)
                for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
+        if not self.feature_keyframes_given and new:
+            self.map_start = new[0].timestamp
         self.feature_keyframes_given.update(k.frame_index for k in new)
         return new, window_poses
 
@@ -630,9 +634,23 @@ class Odometry:
             _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, report.as_details())
             for culled in report.culled_keyframes:
                 _emit(result, EventKind.FEATURE_KEYFRAME_CULLED, {"keyframe": culled})
+            if report.loop is not None:
+                self._report_loop(report.loop, result)
             if keyframe.frame_index == result.frame_index and len(report.new_matches):
                 result.matches_2d = report.new_matches
                 result.matches_inlier = None
+
+    def _report_loop(self, loop: LoopReport, result: FrameResult) -> None:
+        """Every place recognised at a keyframe, taken or refused and why; a closed loop with the correction of each
+        keyframe of the map, which moves the poses tracked from it (vo_core.trajectory.loop_corrected)."""
+        for candidate in loop.candidates:
+            _emit(result, EventKind.LOOP_CANDIDATE, {"keyframe": loop.keyframe, **candidate.as_details()})
+        if loop.loop is None:
+            return
+        times, corrections = zip(*loop.loop.corrections)
+        _emit(result, EventKind.LOOP_CLOSED, {**loop.loop.as_details(), "ms": round(loop.ms, 1),
+                                              "map_start": self.map_start, "keyframe_times": list(times),
+                                              "corrections": [C.reshape(-1).tolist() for C in corrections]})
 
     def _add_initial_tracks(self, initialization, window_poses: dict[int, np.ndarray]) -> int:
         """The initializer's feature tracks (its first points) between its two keyframes join the feature map, at

@@ -43,8 +43,8 @@ from app.experiments.common import (
 from app.pipeline import track
 from vo_core.errors import InputError
 from vo_core.eval import Drift, EvalConfig, evaluate, ground_truth_gap_end, loop_drifts
-from vo_core.events import FrameResult
-from vo_core.trajectory import Trajectory, write_trajectory
+from vo_core.events import EventKind, FrameResult
+from vo_core.trajectory import Trajectory, loop_corrected, write_trajectory
 
 NAME = "two-loop"
 HELP = "FDMO sec. 5.3.1: the sequence played twice, TUM monoVO drifts at the end of each loop"
@@ -117,9 +117,13 @@ def looped_truth(sequence, shift: float) -> Trajectory:
 
 
 def estimated_trajectory(results: list[FrameResult]) -> Trajectory:
+    """The poses tracking gave, moved by every loop closed meanwhile (with loop closure on)."""
     posed = [result for result in results if result.T_world_cam is not None]
+    times = np.array([result.timestamp for result in posed])
     poses = np.array([result.T_world_cam for result in posed]) if posed else np.zeros((0, 4, 4))
-    return Trajectory(np.array([result.timestamp for result in posed]), poses)
+    for event in (e for result in results for e in result.events if e.kind is EventKind.LOOP_CLOSED):
+        poses = loop_corrected(event.details, times, poses)
+    return Trajectory(times, poses)
 
 
 def loop_row(method: str, loop: int, results: list[FrameResult], estimate: Trajectory, truth: Trajectory,

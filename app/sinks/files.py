@@ -27,7 +27,7 @@ import numpy as np
 from app.sinks.scene import FEATURE_POINT_COLOR, inverse_depth_colors
 from vo_core.config import Config, dump_config
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
-from vo_core.trajectory import Trajectory, tum_line, write_trajectory
+from vo_core.trajectory import Trajectory, loop_corrected, tum_line, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
 KEYFRAMES_FILE = "keyframes.tum"
@@ -58,12 +58,14 @@ class FilesSink:
         self._trajectory: PoseLines | None = None
         self._keyframes: PoseLines | None = None
         self._retracted: set[float] = set()  # timestamps whose poses the odometry took back
+        self._loops: list[dict[str, Any]] = []  # the LOOP_CLOSED events' details, in order: they move the poses
 
     def begin(self, config: Config) -> None:
         """Create the folder, start the line files afresh (each pass over the sequence) and write config.yaml."""
         self._close_files()
         self._timestamps.clear()
         self._retracted.clear()
+        self._loops.clear()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
         self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in (FRAMES_FILE, EVENTS_FILE)}
@@ -94,6 +96,10 @@ class FilesSink:
         elif event.kind is EventKind.INITIALIZATION_REJECTED:
             first = self._timestamps.get(event.details.get("first_frame"))
             self._retract([*event.details.get("retracted", []), *([] if first is None else [first])])
+        elif event.kind is EventKind.LOOP_CLOSED:
+            self._loops.append(event.details)
+            self._trajectory.correct(lambda times, poses: loop_corrected(event.details, times, poses))
+            self._keyframes.correct(lambda times, poses: loop_corrected(event.details, times, poses))
 
     def _pose_first_keyframe(self, details: dict[str, Any]) -> None:
         """An initializer poses its first frame, as a keyframe, only when it succeeds, frames later: that frame's
@@ -140,11 +146,17 @@ class FilesSink:
     # ------------------------------------------------------------------------------------ whole files
 
     def write_keyframes(self, keyframe_poses: dict[int, np.ndarray]) -> None:
-        """Replace keyframes.tum by the keyframes' latest poses (a window optimization moves them)."""
+        """Replace keyframes.tum by the keyframes' latest poses (a window optimization moves them), moved by every
+        loop closed since (a loop moves the keyframes the window no longer holds)."""
         dated = sorted((self._timestamps[i], i) for i in keyframe_poses
                        if i in self._timestamps and self._timestamps[i] not in self._retracted)
-        if dated:
-            self._keyframes.replace({timestamp: keyframe_poses[i] for timestamp, i in dated})
+        if not dated:
+            return
+        times = np.array([timestamp for timestamp, _ in dated])
+        poses = np.array([keyframe_poses[i] for _, i in dated])
+        for details in self._loops:
+            poses = loop_corrected(details, times, poses)
+        self._keyframes.replace(dict(zip(times.tolist(), poses)))
 
     def write_ground_truth(self, ground_truth: Trajectory | None) -> None:
         """groundtruth.tum: the poses the run is evaluated against (``fdmo plot`` and ``fdmo eval`` read it)."""
@@ -220,6 +232,13 @@ class PoseLines:
         self._lines = {timestamp: (pose, tum_line(timestamp, pose)) for timestamp, pose in poses.items()}
         self._latest = max(poses, default=-np.inf)
         self._rewrite()
+
+    def correct(self, correct) -> None:
+        """Every pose anew, ``correct(timestamps, poses)`` (a loop closure moved them)."""
+        if self._lines:
+            times = sorted(self._lines)
+            poses = correct(np.array(times), np.array([self._lines[t][0] for t in times]))
+            self.replace(dict(zip(times, poses)))
 
     def trajectory(self) -> Trajectory:
         times = sorted(self._lines)

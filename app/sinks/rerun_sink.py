@@ -62,6 +62,7 @@ from app.sinks.scene import (
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
+    LOOP_COLOR,
     OVERLAY_POINT_COLOR,
     PLOT_LANES,
     EventMarkers,
@@ -95,6 +96,7 @@ GROUND_TRUTH = "world/trajectory/ground_truth"
 DIRECT_POINTS = "world/map/direct_points"
 FEATURE_POINTS = "world/map/feature_points"
 KEYFRAMES = "world/keyframes"
+LOOPS = "world/loops"  # a line between the two keyframes of each closed loop
 EVENT_MARKERS = "world/events"
 EVENT_LOG = "events"
 DIVERGENCE_PLOTS = "plots/divergence"
@@ -194,6 +196,7 @@ class RerunSink:
         self._markers = EventMarkers()
         self._plotted_lanes: set[str] = set()  # the lanes of the divergence plot with a series
         self._matches_shown = False
+        self._loops: list[np.ndarray] = []  # (2, 3) each: the keyframe and its loop keyframe, as last corrected
         self._clouds: tuple[np.ndarray | None, np.ndarray | None] = (None, None)  # the latest direct, feature
         self._log_styles()
 
@@ -224,6 +227,17 @@ class RerunSink:
         style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
         self._markers.add(event)
+        if event.kind is EventKind.LOOP_CLOSED:
+            self._show_loop(event.details)
+
+    def _show_loop(self, loop: dict) -> None:
+        """A closed loop moved the path before it: the whole path again, and the loop's line."""
+        self.history.correct(loop)
+        self._full_path_length = 0
+        self._log_path(force_full=True)
+        self._loops.append(np.asarray(loop["positions"], dtype=float))
+        self.recording.log(LOOPS, rr.LineStrips3D(self._loops, colors=LOOP_COLOR,
+                                                  radii=rr.Radius.ui_points(PATH_RADIUS_UI)))
 
     def on_map(self, snapshot: MapSnapshot) -> None:
         if self._last is not None:

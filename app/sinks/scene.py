@@ -22,7 +22,7 @@ from vo_core.eval import associate, fit_alignment
 from vo_core.eval.associate import DEFAULT_MAX_DT_S
 from vo_core.events import Event, EventKind
 from vo_core.geometry.lie import sim3_inverse, transform_points
-from vo_core.trajectory import Trajectory
+from vo_core.trajectory import Trajectory, loop_corrected
 
 MIN_POSES_TO_ALIGN = 3  # Umeyama's Sim(3) needs three non-collinear positions
 
@@ -35,6 +35,7 @@ CURRENT_CAMERA_COLOR = (230, 40, 40)
 OVERLAY_POINT_COLOR = (60, 230, 60)
 MATCH_INLIER_COLOR = FEATURE_POINT_COLOR  # feature matches the pose accepted, in the feature map's color
 MATCH_OUTLIER_COLOR = (255, 40, 40)
+LOOP_COLOR = (255, 215, 0)  # a closed loop's line between its two keyframes, and its events
 DIVERGENCE_RATIO_COLOR = ESTIMATE_COLOR
 DIVERGENCE_THRESHOLD_COLOR = (120, 120, 120)
 
@@ -79,6 +80,8 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.FEATURE_KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_CULLED: _ROUTINE,
     EventKind.KEYFRAME_MARGINALIZED: _ROUTINE,
+    EventKind.LOOP_CANDIDATE: EventStyle("DEBUG", (200, 190, 120), marked=False),  # most are refused, as they should
+    EventKind.LOOP_CLOSED: EventStyle("INFO", LOOP_COLOR),
     EventKind.SCALE_JUMP: EventStyle("WARN", (255, 200, 0)),
     EventKind.MAP_POINTS_CULLED: _ROUTINE,
     EventKind.WINDOW_OPTIMIZED: _ROUTINE,
@@ -303,6 +306,12 @@ class PathHistory:
         self._positions[len(self.poses)] = T_world_cam[:3, 3]
         self.timestamps.append(float(timestamp))
         self.poses.append(np.asarray(T_world_cam, dtype=float))
+
+    def correct(self, correction: dict) -> None:
+        """Every pose as a closed loop moved it (``correction``: the LOOP_CLOSED event's details)."""
+        if self.poses:
+            self.poses = list(loop_corrected(correction, np.array(self.timestamps), np.array(self.poses)))
+            self._positions[:len(self.poses)] = [T[:3, 3] for T in self.poses]
 
     def positions(self, start: int = 0) -> np.ndarray:
         """(N - start, 3) camera centres, from pose ``start`` on (a copy)."""

@@ -40,6 +40,7 @@ from app.sinks.scene import (
     FEATURE_POINT_COLOR,
     GROUND_TRUTH_COLOR,
     KEYFRAME_COLOR,
+    LOOP_COLOR,
     MIN_SCENE_SIZE,
     OVERLAY_POINT_COLOR,
     PLOT_LANES,
@@ -109,6 +110,7 @@ class _LiveState:
     """What the sink methods store for the refresher; written under ViserView._state_lock only."""
 
     path: PathHistory = field(default_factory=PathHistory)
+    loops: list[np.ndarray] = field(default_factory=list)  # (2, 3) each: a closed loop's two keyframes
     frame_index: int | None = None
     image: np.ndarray | None = None
     points_2d: np.ndarray | None = None
@@ -141,6 +143,7 @@ class _Drawing:
     """A consistent copy of the live state, taken under the lock, drawn outside it."""
 
     path: np.ndarray
+    loops: np.ndarray  # (K, 2, 3)
     trajectory: Trajectory | None
     image: np.ndarray | None
     points_2d: np.ndarray | None
@@ -252,6 +255,9 @@ class ViserView:
             if event.kind is EventKind.FRAMES_DROPPED:
                 state.dropped += int(event.details.get("count", 0))
             state.jumps += event.kind is EventKind.FRAMES_JUMPED
+            if event.kind is EventKind.LOOP_CLOSED:  # the path before it moves, and the loop is drawn
+                state.path.correct(event.details)
+                state.loops.append(np.asarray(event.details["positions"], dtype=float))
             if event_style(event).marked:
                 state.events.appendleft(event)
                 state.markers.add(event)
@@ -372,7 +378,7 @@ class ViserView:
     def _copy_for_drawing(self, with_trajectory: bool) -> _Drawing:
         state = self._state
         return _Drawing(
-            path=state.path.positions(),
+            path=state.path.positions(), loops=np.array(state.loops).reshape(-1, 2, 3),
             trajectory=state.path.trajectory() if with_trajectory and self.ground_truth is not None else None,
             image=state.image, points_2d=state.points_2d, matches_2d=state.matches_2d,
             matches_inlier=state.matches_inlier, T_world_cam=state.T_world_cam,
@@ -409,6 +415,9 @@ class ViserView:
         if len(drawing.path) >= 2:
             self._add("trajectory", "/trajectory", scene.add_line_segments, points=_segments(drawing.path),
                       colors=ESTIMATE_COLOR, thickness=LINE_THICKNESS_PX, thickness_units="screen")
+        if len(drawing.loops):
+            self._add("loops", "/loops", scene.add_line_segments, points=drawing.loops, colors=LOOP_COLOR,
+                      thickness=LINE_THICKNESS_PX, thickness_units="screen")
         if drawing.T_world_cam is not None:
             camera = self._node("/camera")
             if camera is None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from vo_core.errors import InputError
 from vo_core.geometry.lie import sim3
+from vo_core.geometry.sim3_solver import umeyama as closed_form_umeyama
 from vo_core.trajectory import Trajectory
 
 ALIGNMENTS = ("sim3", "se3", "none")
@@ -43,23 +44,14 @@ class Alignment:
 
 
 def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
-    """(R, t, s) minimizing sum_i ||target_i - (s R source_i + t)||^2 for (N, 3) point sets (Umeyama 1991)."""
-    mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
-    centred_source, centred_target = source - mean_source, target - mean_target
-    variance_source = np.mean(np.sum(centred_source**2, axis=1))  # sigma_x^2, eq. (36)
-    covariance = centred_target.T @ centred_source / len(source)  # Sigma_xy, eq. (38)
-    U, d, Vt = np.linalg.svd(covariance)
-    # S = diag(1, 1, -1) when det(U) det(V) < 0: the best proper rotation, not a reflection, eq. (43)
-    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
-    R = U @ np.diag(signs) @ Vt  # eq. (40)
+    """(R, t, s) minimizing sum_i ||target_i - (s R source_i + t)||^2 for (N, 3) point sets: geometry's closed form
+    (vo_core/geometry/sim3_solver.umeyama, Umeyama 1991), refused with an InputError where the estimate has not
+    moved enough to have a scale."""
     if with_scale:
-        if variance_source < MIN_POSITION_VARIANCE:
+        spread = np.mean(np.sum((source - source.mean(axis=0)) ** 2, axis=1))  # Umeyama's sigma_x^2
+        if spread < MIN_POSITION_VARIANCE:
             raise InputError("Sim(3) alignment: the estimated positions do not move, their scale is undefined")
-        s = float(d @ signs / variance_source)  # c = tr(D S) / sigma_x^2, eq. (42)
-    else:
-        s = 1.0
-    t = mean_target - s * R @ mean_source  # eq. (41)
-    return R, t, s
+    return closed_form_umeyama(source, target, with_scale)
 
 
 def fit_alignment(

@@ -202,6 +202,34 @@ class FeatureOdometryConfig:
 
 
 @dataclass
+class LoopClosingConfig:
+    """Loop closure over the feature map (ORB-SLAM2 LoopClosing: DetectLoop, ComputeSim3, CorrectLoop; LDSO, Gao et
+    al. 2018, for a direct odometry beside it). Off for FDMO as the paper's odometry; ``--loop-closure`` or the slam
+    settings turn it on."""
+
+    enabled: bool = False
+    min_keyframes_between: int = 10  # ORB-SLAM2 DetectLoop: no loop within 10 keyframes of the map's start or last loop
+    covisible_min_weight: int = 15  # ORB-SLAM2 KeyFrame::UpdateConnections: the neighbourhood a loop must leave
+    group_neighbours: int = 10  # ORB-SLAM2 DetectLoopCandidates: a candidate's score accumulated over 10 covisibles
+    group_score_ratio: float = 0.75  # ORB-SLAM2 DetectLoopCandidates: groups within 0.75 of the best accumulated score
+    consistency: int = 3  # ORB-SLAM2 mnCovisibilityConsistencyTh: seen again by 3 consecutive keyframes after the first
+    bow_max_distance: int = 50  # ORB-SLAM2 ComputeSim3: SearchByBoW with TH_LOW ...
+    bow_ratio: float = 0.75  # ... and ORBmatcher(0.75, true)
+    min_bow_matches: int = 20  # ORB-SLAM2 ComputeSim3: fewer than 20 matches, the candidate is dropped
+    ransac_probability: float = 0.99  # ORB-SLAM2 Sim3Solver::SetRansacParameters(0.99, 20, 300)
+    ransac_min_inliers: int = 20
+    ransac_max_iterations: int = 300
+    ransac_chi2: float = 9.21  # ORB-SLAM2 Sim3Solver: 99 % of a 2-DOF chi-square, on the level-normalized error
+    refine_chi2: float = 10.0  # ORB-SLAM2 OptimizeSim3: th2 = 10 ...
+    refine_iterations: int = 5  # ... 5 iterations, outliers out, 5 more
+    min_refined_inliers: int = 20  # ORB-SLAM2 ComputeSim3: nInliers >= 20 after OptimizeSim3
+    projection_radius_px: float = 10.0  # ORB-SLAM2 ComputeSim3: SearchByProjection(pKF, mScw, ..., 10)
+    min_loop_matches: int = 40  # ORB-SLAM2 ComputeSim3: the loop's neighbourhood matched 40 times, else refused
+    essential_min_weight: int = 100  # ORB-SLAM2 OptimizeEssentialGraph: covisibility edges of 100 shared points
+    pose_graph_iterations: int = 20  # ORB-SLAM2 OptimizeEssentialGraph: optimize(20)
+
+
+@dataclass
 class FeatureConfig:
     orb: OrbConfig = field(default_factory=OrbConfig)
     vocabulary: VocabularyConfig = field(default_factory=VocabularyConfig)
@@ -209,3 +237,4 @@ class FeatureConfig:
     maintenance: MaintenanceConfig = field(default_factory=MaintenanceConfig)
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
     odometry: FeatureOdometryConfig = field(default_factory=FeatureOdometryConfig)  # --method features
+    loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)

@@ -272,6 +272,22 @@ class FeatureMap:
             mine = keyframe_of == frame_index
             self.keyframes[int(frame_index)].point_ids[feature_of[mine]] = NO_POINT
 
+    def merge_points(self, duplicates: np.ndarray, survivors: np.ndarray) -> None:
+        """Each duplicate's observations become its survivor's, and the duplicate dies (ORB-SLAM2 MapPoint::Replace);
+        a keyframe that would then observe a survivor twice keeps one observation."""
+        if len(duplicates) == 0:
+            return
+        new_id = np.arange(len(self.points))
+        new_id[duplicates] = survivors
+        for keyframe in self.keyframes.values():
+            observed = keyframe.observed()
+            ids = new_id[keyframe.point_ids[observed]]
+            _, first = np.unique(ids, return_index=True)
+            kept = np.zeros(len(ids), bool)
+            kept[first] = True
+            keyframe.point_ids[observed] = np.where(kept, ids, NO_POINT)
+        self.points.alive[duplicates] = False
+
     def _forget_dead(self) -> None:
         """No keyframe keeps an observation of a dead point."""
         dead = ~self.points.alive

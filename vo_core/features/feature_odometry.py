@@ -12,6 +12,7 @@ import numpy as np
 
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import FeatureMap, project_points
+from vo_core.features.loop_closing import LoopCloser
 from vo_core.features.mapping import FeatureMapper, MappingReport
 from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
 from vo_core.features.vocabulary import load_vocabulary
@@ -28,6 +29,7 @@ class FeatureOdometry:
         self.map = FeatureMap()
         self.mapper = FeatureMapper(config, camera, vocabulary)
         self.relocalizer = Relocalizer(config, camera, vocabulary)
+        self.loop_closer = LoopCloser(config.loop_closing, config.orb, camera) if config.loop_closing.enabled else None
 
     @property
     def empty(self) -> bool:
@@ -42,13 +44,19 @@ class FeatureOdometry:
     def reset(self) -> None:
         """A map at a new scale starts over (the direct map initialized again from scratch)."""
         self.map = FeatureMap()
+        if self.loop_closer is not None:
+            self.loop_closer.reset()
 
     def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
                      scene_depth: float, window_poses: dict[int, np.ndarray]) -> MappingReport:
-        """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses."""
+        """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses. With loop
+        closing, the keyframe then looks for a loop (loop_closing.py), the window held where a loop moves the map."""
         self.map.sync_poses(window_poses)
-        return self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
-                                        set(window_poses))
+        report = self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
+                                          set(window_poses))
+        if self.loop_closer is not None and frame_index in self.map.keyframes:
+            report.loop = self.loop_closer.run(self.map, self.map.keyframes[frame_index], set(window_poses))
+        return report
 
     def describe_ahead(self, frame_index: int, image: np.ndarray) -> None:
         """The image of a frame the direct half is making a keyframe, described while it does (FeatureMapper)."""

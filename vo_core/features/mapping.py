@@ -20,6 +20,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.geometry.multiview import triangulate
 from vo_core.geometry.structure_only import refine_points
+
+if TYPE_CHECKING:
+    from vo_core.features.loop_closing import LoopReport
 
 
 @dataclass
@@ -51,6 +55,7 @@ class MappingReport:
     culled_keyframes: list[int] = field(default_factory=list)
     ms: float = 0.0
     new_matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))  # (u_local, v_local, u_new, v_new)
+    loop: LoopReport | None = None  # with loop closing on: what it did after the keyframe was mapped
 
     def as_details(self) -> dict:
         return {

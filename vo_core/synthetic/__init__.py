@@ -6,7 +6,7 @@ cv2.remap) along preset trajectories, for tests and experiments that need the tr
     for frame in sequence:  # frame.image (uint8), frame.depth, frame.T_world_cam
         ...
 
-Presets (``PRESETS``): smooth, forward, rotation, planar, jump, static, loop (see trajectories.py).
+Presets (``PRESETS``): smooth, forward, rotation, planar, jump, static, loop, circuit (see trajectories.py).
 """
 
 from vo_core.synthetic.renderer import RenderConfig, Renderer, Rendering

@@ -163,7 +163,8 @@ def make_sequence(
     render_config: RenderConfig = RenderConfig(),
     brightness_config: BrightnessConfig = BrightnessConfig(),
 ) -> SyntheticSequence:
-    """A synthetic sequence of ``preset`` (one of ``PRESETS``: smooth, forward, rotation, planar, jump, static, loop):
+    """A synthetic sequence of ``preset`` (one of ``PRESETS``: smooth, forward, rotation, planar, jump, static, loop,
+    circuit):
     the scene the preset is made for and its trajectory, both drawn from ``seed``, seen by ``default_camera``.
     With ``brightness_change`` each frame gets its own mild affine brightness change (``BrightnessConfig``)."""
     if width < 1 or height < 1:

@@ -14,6 +14,9 @@ Each preset gives timestamps and ``T_world_cam`` poses at a fixed frame rate, in
 - ``loop``: a closed handheld loop through the room that ends where it starts: the frame after the last would be
   the first again, so a sequence played twice in a row moves on smoothly (TUM monoVO's sequences start and end
   at the same place; FDMO sec. 5.3.1's two-loop experiment).
+- ``circuit``: one turn round a circle in the room's front half, facing outwards, so that the walls and objects
+  pass by in turn and the place of the start cannot be seen from the middle (unlike ``loop``'s): played twice, a
+  loop a loop closer can find; closed like ``loop``.
 
 Sums of sinusoids are bounded by the sum of their amplitudes, so the camera stays inside a known box and
 orientation range: the room is closed, the plane large enough, and every view is filled.
@@ -51,6 +54,9 @@ class TrajectoryConfig:
     # The loop: harmonics 1, 2, ... of one turn per sequence (periodic, hence closed), within these bounds.
     loop_translation_m: tuple[float, float, float] = (0.5, 0.2, 0.4)
     loop_rotation_rad: tuple[float, float, float] = (0.1, 0.25, 0.05)
+    # The circuit: 1.3 m from the objects and 2 m from the walls at its closest.
+    circuit_centre_m: tuple[float, float, float] = (0.0, 0.0, -0.2)
+    circuit_radius_m: float = 0.8
 
 
 @dataclass(frozen=True)
@@ -127,6 +133,15 @@ def _loop_poses(num_frames: int, rng: np.random.Generator, config: TrajectoryCon
     return _poses(rotations, positions)
 
 
+def _circuit_poses(num_frames: int, rng: np.random.Generator, config: TrajectoryConfig) -> np.ndarray:
+    """Frame i at angle 2 pi i / num_frames round the circle, looking outwards along its radius (a yaw of that
+    angle): frame ``num_frames`` would be frame 0."""
+    angles = 2.0 * np.pi * np.arange(num_frames) / num_frames
+    outwards = np.stack([np.sin(angles), np.zeros(num_frames), np.cos(angles)], axis=1)
+    positions = np.asarray(config.circuit_centre_m) + config.circuit_radius_m * outwards
+    return _poses(np.stack([np.zeros(num_frames), angles, np.zeros(num_frames)], axis=1), positions)
+
+
 def _static_poses(num_frames: int, rng: np.random.Generator, config: TrajectoryConfig) -> np.ndarray:
     return np.repeat(np.eye(4)[None], num_frames, axis=0)
 
@@ -140,6 +155,7 @@ _PRESETS: dict[str, tuple[Callable[[int, np.random.Generator, TrajectoryConfig],
     "jump": (_smooth_poses, "room"),
     "static": (_static_poses, "room"),
     "loop": (_loop_poses, "room"),
+    "circuit": (_circuit_poses, "room"),
 }
 PRESETS = tuple(_PRESETS)
 

@@ -1,0 +1,141 @@
+"""Loop closure over the feature map (vo_core/features/loop_closing.py): a place seen again closes a loop where the
+ground truth says it is the same place, the poses before it move with their keyframes' corrections, and the result
+files follow."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from app.sinks.files import KEYFRAMES_FILE, TRAJECTORY_FILE, FilesSink
+from vo_core.config import load_config
+from vo_core.eval.metrics import evaluate
+from vo_core.events import Event, EventKind, FrameResult
+from vo_core.features.feature_map import NO_POINT, FeatureMap, FeatureKeyframe
+from vo_core.features.orb import Features
+from vo_core.features.vocabulary import BowVector
+from vo_core.geometry.lie import se3_exp, sim3, so3_exp, so3_geodesic_angle
+from vo_core.synthetic import make_sequence
+from vo_core.synthetic.faults import looping
+from vo_core.system import Odometry
+from vo_core.trajectory import Trajectory, loop_corrected, read_trajectory
+
+CIRCUIT_FRAMES = 180  # one turn: 2 degrees and 2.8 cm a frame
+MAX_LOOP_ANGLE_DEG = 15.0  # two keyframes of one place: views this close overlap by most of their 60-degree field
+MAX_LOOP_DISTANCE_M = 0.2
+
+
+@pytest.fixture(scope="module")
+def circuit_twice():
+    """The circuit preset played twice round, loop closure on: (the played sequence, the results)."""
+    sequence = make_sequence("circuit", CIRCUIT_FRAMES, seed=1, width=320, height=240)
+    played = looping(sequence, 2 * CIRCUIT_FRAMES)
+    odometry = Odometry(load_config(overrides=["features.loop_closing.enabled=true"]), sequence.camera)
+    results = [odometry.track(frame) for frame in played]
+    odometry.close()
+    return played, results
+
+
+def events_of(results, kind: EventKind) -> list[Event]:
+    return [event for result in results for event in result.events if event.kind is kind]
+
+
+def test_the_second_round_closes_a_loop_with_the_first_where_the_ground_truth_has_one_place(circuit_twice):
+    played, results = circuit_twice
+    truth = dict(zip(played.indices.tolist(), played.ground_truth.poses))
+    loops = events_of(results, EventKind.LOOP_CLOSED)
+    assert loops, "the circuit's second round never closed a loop"
+    for loop in loops:
+        here, there = truth[loop.details["keyframe"]], truth[loop.details["loop_keyframe"]]
+        assert np.degrees(so3_geodesic_angle(here[:3, :3], there[:3, :3])) < MAX_LOOP_ANGLE_DEG
+        assert np.linalg.norm(here[:3, 3] - there[:3, 3]) < MAX_LOOP_DISTANCE_M
+        assert loop.details["keyframe"] - loop.details["loop_keyframe"] > CIRCUIT_FRAMES / 2  # a round apart
+    candidates = events_of(results, EventKind.LOOP_CANDIDATE)
+    assert all(c.details["why"] for c in candidates)  # each taken or refused, and why
+
+
+def test_a_closed_loop_brings_the_first_round_onto_the_second(circuit_twice):
+    """The corrected poses (the events' corrections applied to what tracking gave) put the same place seen a round
+    apart closer together, and the first round nearer its ground truth."""
+    played, results = circuit_twice
+    posed = [r for r in results if r.T_world_cam is not None]
+    times = np.array([r.timestamp for r in posed])
+    tracked = np.array([r.T_world_cam for r in posed])
+    corrected = tracked
+    for loop in events_of(results, EventKind.LOOP_CLOSED):
+        corrected = loop_corrected(loop.details, times, corrected)
+    first = int(np.searchsorted(played.timestamps, times[0]))
+    same_place = [np.flatnonzero(times == played.timestamps[k])[0] for k in (first, first + CIRCUIT_FRAMES)]
+
+    def gap(poses):
+        return np.linalg.norm(poses[same_place[1], :3, 3] - poses[same_place[0], :3, 3])
+
+    def first_round_ate(poses):
+        round_one = times < played.timestamps[CIRCUIT_FRAMES]
+        return evaluate(Trajectory(times[round_one], poses[round_one]), played.ground_truth)["ate"]["rmse"]
+
+    assert gap(corrected) < 0.5 * gap(tracked)
+    assert first_round_ate(corrected) < 0.8 * first_round_ate(tracked)
+
+
+def test_a_pose_moves_with_the_keyframe_before_it_and_earlier_maps_stay():
+    times = np.arange(6, dtype=float)
+    poses = np.array([se3_exp(np.array([0.1 * i, 0.0, 0.02 * i, 0.0, 0.05 * i, 0.0])) for i in times.astype(int)])
+    C_first, C_second = sim3(2.0, so3_exp(np.array([0.0, 0.3, 0.0])), np.array([1.0, 0.0, 0.0])), np.eye(4)
+    correction = {"map_start": 1.0, "keyframe_times": [2.0, 4.0],
+                  "corrections": [C_first.reshape(-1).tolist(), C_second.reshape(-1).tolist()]}
+    moved = loop_corrected(correction, times, poses)
+    np.testing.assert_array_equal(moved[0], poses[0])  # before the map's start: another map
+    for i in (1, 2, 3):  # before the first keyframe, and tracked from it
+        np.testing.assert_allclose(moved[i][:3, 3], (C_first @ poses[i])[:3, 3])
+        np.testing.assert_allclose(moved[i][:3, :3] @ moved[i][:3, :3].T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(moved[4:], poses[4:])  # tracked from the held keyframe
+
+
+def test_a_closed_loop_rewrites_the_trajectory_and_the_final_keyframes(tmp_path):
+    sink = FilesSink(tmp_path)
+    sink.begin(load_config())
+    poses = [se3_exp(np.array([0.1 * i, 0.0, 0.0, 0.0, 0.0, 0.0])) for i in range(4)]
+    for i, T in enumerate(poses):
+        sink.on_frame(None, FrameResult(i, float(i), T, True, is_keyframe=i in (0, 2)))
+    shift = se3_exp(np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0]))
+    details = {"map_start": 0.0, "keyframe_times": [0.0, 2.0],
+               "corrections": [shift.reshape(-1).tolist(), np.eye(4).reshape(-1).tolist()]}
+    sink.on_event(Event(EventKind.LOOP_CLOSED, 3, 3.0, details))
+    sink.write_keyframes({0: poses[0], 2: poses[2]})
+    sink.close()
+    trajectory = read_trajectory(tmp_path / TRAJECTORY_FILE)
+    np.testing.assert_allclose(trajectory.positions[:, 1], [0.5, 0.5, 0.0, 0.0], atol=1e-9)
+    keyframes = read_trajectory(tmp_path / KEYFRAMES_FILE)
+    np.testing.assert_allclose(keyframes.positions[:, 1], [0.5, 0.0], atol=1e-9)
+
+
+def test_merged_points_leave_their_observations_to_the_survivor():
+    feature_map = FeatureMap()
+    for frame_index, ids in enumerate(([0, 1, NO_POINT], [1, 2, 0])):
+        features = Features(np.zeros((3, 2)), np.zeros(3, np.int64), np.zeros(3), np.zeros(3, np.float32),
+                             np.zeros((3, 32), np.uint8))
+        feature_map.add_keyframe(FeatureKeyframe(frame_index, frame_index, float(frame_index), np.eye(4), features,
+                                                 BowVector.empty(), np.zeros(3, np.int64),
+                                                 point_ids=np.array(ids, np.int64)))
+    feature_map.points.add(np.zeros((3, 3)), np.zeros((3, 32), np.uint8), 0, np.ones(3), np.zeros(3, np.int64))
+    feature_map.merge_points(np.array([1]), np.array([0]))
+    assert not feature_map.points.alive[1]
+    assert feature_map.keyframes[0].point_ids.tolist() == [0, NO_POINT, NO_POINT]  # seen twice: one kept
+    assert feature_map.keyframes[1].point_ids.tolist() == [0, 2, NO_POINT]
+
+
+def test_the_recording_shows_the_corrected_path_and_the_loop(tmp_path):
+    from app.sinks.rerun_sink import RerunSink
+
+    camera = make_sequence("circuit", 2, width=64, height=48).camera
+    sink = RerunSink(None, camera)
+    for i in range(3):
+        sink.on_frame(None, FrameResult(i, float(i), se3_exp(np.array([0.1 * i, 0, 0, 0, 0, 0])), True))
+    shift = se3_exp(np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0]))
+    sink.on_event(Event(EventKind.LOOP_CLOSED, 2, 2.0, {
+        "map_start": 0.0, "keyframe_times": [0.0, 2.0], "positions": [[0.2, 0, 0], [0, 0.5, 0]],
+        "corrections": [shift.reshape(-1).tolist(), np.eye(4).reshape(-1).tolist()]}))
+    np.testing.assert_allclose(sink.history.positions()[:, 1], [0.5, 0.5, 0.0])
+    assert len(sink._loops) == 1
+    sink.close()

@@ -1,0 +1,362 @@
+"""Loop closure over the feature map: ORB-SLAM2's LoopClosing, as LDSO (Gao, Wang, Demmel, Cremers 2018) adds it
+to a direct odometry that keeps ORB features on its keyframes.
+
+At every feature keyframe, ``LoopCloser.run`` is the recipe:
+
+1. ``detect``: keyframes outside the new keyframe's covisible neighbourhood that the bag of words finds at least as
+   similar as its least similar neighbour, grouped with their covisibles (accumulated scores), and kept only when
+   the same place comes back for ``consistency`` keyframes in a row (ORB-SLAM2 DetectLoop, DetectLoopCandidates).
+2. ``verify``: per candidate, BoW matches between both keyframes' map points, a Sim(3) by RANSAC, more matches
+   guided by it, refined; then the candidate's whole neighbourhood, projected into the keyframe at the pose the
+   Sim(3) gives it, must be found there (ORB-SLAM2 ComputeSim3).
+3. ``correct``: a pose graph over the map's keyframes in Sim(3) (consecutive keyframes, strong covisibility, the
+   loop), with the direct window held where it is: the older keyframes and their points move to where the current
+   map sees them, so tracking goes on from the same window without a jump, and the loop's duplicate points are
+   fused (ORB-SLAM2 CorrectLoop and OptimizeEssentialGraph hold the loop's side instead; LDSO likewise leaves the
+   window alone). The trajectory of the frames before follows their keyframes' corrections (``corrections``).
+
+A wrong loop is worse than none: every candidate is reported with why it was taken or refused.
+
+Conventions: poses are T_world_cam; a similarity S_a_b maps points in b's frame into a's (x_a = S_a_b x_b); a
+keyframe's correction C = S_world_cam(after) T_world_cam(before)^-1 maps the world points it saw to where they are
+now, and a pose T taken relative to the keyframe to C T (its scale dropped from the rotation).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from vo_core.features.config import LoopClosingConfig, OrbConfig
+from vo_core.features.feature_map import Covisibility, FeatureKeyframe, FeatureMap, project_points
+from vo_core.features.matcher import match_by_bow, search_by_projection
+from vo_core.features.orb import level_sigma2s
+from vo_core.features.vocabulary import bow_score
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import se3_inverse, sim3_inverse, sim3_scale, transform_points
+from vo_core.geometry.pose_graph import PoseGraphEdge, optimize_pose_graph
+from vo_core.geometry.sim3_solver import Sim3Matches, ransac_sim3, refine_sim3
+
+
+@dataclass
+class LoopCandidate:
+    """A place the bag of words recognised, and what became of it (``why`` it was refused, "" where accepted)."""
+
+    frame_index: int
+    score: float
+    consistency: int = 0
+    why: str = ""
+    bow_matches: int = 0
+    inliers: int = 0
+    loop_matches: int = 0
+    scale: float | None = None
+
+    def as_details(self) -> dict:
+        return {"candidate": self.frame_index, "score": round(self.score, 4), "consistency": self.consistency,
+                "accepted": not self.why, "why": self.why or "accepted", "bow_matches": self.bow_matches,
+                "inliers": self.inliers, "loop_matches": self.loop_matches,
+                "scale": None if self.scale is None else round(self.scale, 4)}
+
+
+@dataclass
+class LoopCorrection:
+    """An accepted loop and how it moved the map: ``corrections`` holds (timestamp, C) of every keyframe of the map,
+    in time order (identity for the held window)."""
+
+    keyframe: int
+    loop_keyframe: int
+    S_keyframe_loop: np.ndarray
+    corrections: list[tuple[float, np.ndarray]]
+    moved_keyframes: int
+    fused_points: int
+    cost_before: float
+    cost_after: float
+    positions: np.ndarray  # (2, 3) the keyframe's and the loop keyframe's centres after the correction
+
+    def as_details(self) -> dict:
+        return {"keyframe": self.keyframe, "loop_keyframe": self.loop_keyframe, "positions": self.positions.tolist(),
+                "scale": round(sim3_scale(self.S_keyframe_loop), 4), "moved_keyframes": self.moved_keyframes,
+                "fused_points": self.fused_points, "pose_graph_cost": [self.cost_before, self.cost_after]}
+
+
+@dataclass
+class LoopReport:
+    """What loop closing did at one keyframe: nothing (``skipped`` says why), candidates tried, or a loop."""
+
+    keyframe: int
+    skipped: str = ""
+    candidates: list[LoopCandidate] = field(default_factory=list)
+    loop: LoopCorrection | None = None
+    ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Verified:
+    """A candidate's Sim(3), and the keyframe's features matched to points of the loop's side."""
+
+    S_keyframe_loop: np.ndarray
+    features: np.ndarray  # feature indices of the keyframe
+    points: np.ndarray  # the loop side's point ids they matched
+
+
+class LoopCloser:
+    def __init__(self, config: LoopClosingConfig, orb: OrbConfig, camera: PinholeCamera):
+        self.config = config
+        self.orb = orb
+        self.camera = camera
+        self.sigma2 = level_sigma2s(orb)
+        self.groups: list[tuple[frozenset[int], int]] = []  # places seen by the last keyframes, and for how many
+        self.last_loop_id = 0  # keyframe_id of the last loop (the map's start counts as one)
+
+    def reset(self) -> None:
+        """A new map: nothing seen yet."""
+        self.groups, self.last_loop_id = [], 0
+
+    def run(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, window: set[int]) -> LoopReport:
+        """ORB-SLAM2 LoopClosing::Run for one new keyframe; ``window``: the direct window's frame indices (held)."""
+        start = time.perf_counter()
+        report = LoopReport(keyframe.frame_index)
+        if keyframe.keyframe_id < self.last_loop_id + self.config.min_keyframes_between:
+            report.skipped = f"within {self.config.min_keyframes_between} keyframes of the map's start or last loop"
+            return report
+        graph = feature_map.covisibility_graph()
+        report.candidates = self.detect(feature_map, graph, keyframe)
+        for candidate in report.candidates:
+            if candidate.why:
+                continue
+            verified = self.verify(feature_map, graph, keyframe, candidate)
+            if verified is None:
+                continue
+            report.loop = self.correct(feature_map, graph, keyframe, candidate.frame_index, verified, window)
+            self.last_loop_id, self.groups = keyframe.keyframe_id, []
+            for other in report.candidates:  # one loop per keyframe, as ORB-SLAM2
+                if other is not candidate and not other.why:
+                    other.why = f"another candidate ({candidate.frame_index}) closed the loop"
+            break
+        report.ms = (time.perf_counter() - start) * 1000.0
+        return report
+
+    # ------------------------------------------------------------------------------------ 1. detect
+
+    def detect(self, feature_map: FeatureMap, graph: Covisibility, keyframe: FeatureKeyframe) -> list[LoopCandidate]:
+        """The places recognised for the keyframe: refused ones say why (not consistent yet)."""
+        scored = self._recognised(feature_map, graph, keyframe)
+        groups, candidates = [], []
+        for frame_index, score in scored.items():
+            group = frozenset({frame_index, *graph.covisible_keyframes(frame_index, self.config.covisible_min_weight)})
+            consistency = max((count + 1 for previous, count in self.groups if group & previous), default=0)
+            groups.append((group, consistency))
+            candidate = LoopCandidate(frame_index, score, consistency)
+            if consistency < self.config.consistency:
+                candidate.why = f"seen by {consistency + 1} keyframes in a row, not yet {self.config.consistency + 1}"
+            candidates.append(candidate)
+        self.groups = groups
+        return candidates
+
+    def _recognised(self, feature_map: FeatureMap, graph: Covisibility, keyframe: FeatureKeyframe) -> dict[int, float]:
+        """ORB-SLAM2 DetectLoopCandidates: keyframes outside the neighbourhood scoring at least the least similar
+        neighbour, by groups (a candidate with its best covisibles, scores summed); the best of each group within
+        ``group_score_ratio`` of the best group. Returns candidate -> its own score, best first."""
+        config = self.config
+        neighbours = set(graph.covisible_keyframes(keyframe.frame_index, config.covisible_min_weight))
+        # The least similar neighbour sets the bar (1: nothing to compare with, nothing is recognised).
+        min_score = min((bow_score(keyframe.bow, feature_map.keyframes[n].bow) for n in neighbours), default=1.0)
+        others = set(feature_map.keyframes) - neighbours - {keyframe.frame_index}
+        scores = {k: s for k, s, _ in feature_map.index.query(keyframe.bow, restrict_to=others) if s >= min_score}
+        if not scores:
+            return {}
+        best_of_group = {}
+        for frame_index in scores:
+            group = [k for k in (frame_index, *graph.covisible_keyframes(frame_index, 1, config.group_neighbours))
+                     if k in scores]
+            best_of_group[frame_index] = (sum(scores[k] for k in group), max(group, key=scores.get))
+        bar = config.group_score_ratio * max(total for total, _ in best_of_group.values())
+        chosen = {best for total, best in best_of_group.values() if total >= bar}
+        return {k: scores[k] for k in sorted(chosen, key=lambda k: -scores[k])}
+
+    # ------------------------------------------------------------------------------------ 2. verify
+
+    def verify(self, feature_map: FeatureMap, graph: Covisibility, keyframe: FeatureKeyframe,
+               candidate: LoopCandidate) -> _Verified | None:
+        """ORB-SLAM2 ComputeSim3 for one candidate; a refusal is written into ``candidate.why``."""
+        config = self.config
+        loop = feature_map.keyframes[candidate.frame_index]
+        features, points = self._bow_matches(feature_map, keyframe, loop)
+        candidate.bow_matches = len(features)
+        if len(features) < config.min_bow_matches:
+            candidate.why = f"{len(features)} BoW matches of map points, fewer than {config.min_bow_matches}"
+            return None
+        rng = np.random.default_rng(keyframe.frame_index)  # deterministic: the same run closes the same loops
+        fit = ransac_sim3(self._matches(feature_map, keyframe, features, loop, points), self.camera, rng,
+                          min_inliers=config.ransac_min_inliers, max_iterations=config.ransac_max_iterations,
+                          chi2=config.ransac_chi2, probability=config.ransac_probability)
+        if fit is None:
+            candidate.why = f"no Sim(3) with {config.ransac_min_inliers} inliers among {len(features)} matches"
+            return None
+        # More of the loop keyframe's points, found where the Sim(3) puts them (ORB-SLAM2 SearchBySim3), then refined.
+        more_features, more_points = self._found(feature_map, keyframe, loop.frame_index, fit.S_a_b,
+                                                 feature_map.points_of([loop.frame_index]), features, points,
+                                                 with_points_only=True)
+        features, points = np.concatenate([features, more_features]), np.concatenate([points, more_points])
+        fit = refine_sim3(self._matches(feature_map, keyframe, features, loop, points), self.camera, fit.S_a_b,
+                          chi2=config.refine_chi2, iterations=config.refine_iterations)
+        candidate.inliers, candidate.scale = fit.num_inliers, fit.scale
+        if fit.num_inliers < config.min_refined_inliers:
+            candidate.why = f"{fit.num_inliers} inliers after refinement, fewer than {config.min_refined_inliers}"
+            return None
+        features, points = features[fit.inliers], points[fit.inliers]
+        # The loop's whole neighbourhood, seen from the pose the Sim(3) gives the keyframe, must be found there.
+        neighbourhood = [loop.frame_index, *graph.covisible_keyframes(loop.frame_index, 1)]
+        found_features, found_points = self._found(feature_map, keyframe, loop.frame_index, fit.S_a_b,
+                                                   feature_map.points_of(neighbourhood), features, points,
+                                                   with_points_only=False)
+        candidate.loop_matches = len(features) + len(found_features)
+        if candidate.loop_matches < config.min_loop_matches:
+            candidate.why = (f"{candidate.loop_matches} matches with the loop's neighbourhood, fewer than "
+                             f"{config.min_loop_matches}")
+            return None
+        return _Verified(fit.S_a_b, np.concatenate([features, found_features]), np.concatenate([points, found_points]))
+
+    def _bow_matches(self, feature_map: FeatureMap, keyframe: FeatureKeyframe,
+                     loop: FeatureKeyframe) -> tuple[np.ndarray, np.ndarray]:
+        """ORB-SLAM2 SearchByBoW(KF, KF): the keyframe's features with a map point matched to the loop keyframe's.
+        Returns (feature indices of the keyframe, point ids of the loop keyframe)."""
+        mine, theirs = self._with_points(feature_map, keyframe), self._with_points(feature_map, loop)
+        index_a, index_b = match_by_bow(keyframe.features.subset(mine), keyframe.nodes[mine],
+                                        loop.features.subset(theirs), loop.nodes[theirs],
+                                        max_distance=self.config.bow_max_distance, ratio=self.config.bow_ratio)
+        return mine[index_a], loop.point_ids[theirs[index_b]]
+
+    @staticmethod
+    def _with_points(feature_map: FeatureMap, keyframe: FeatureKeyframe) -> np.ndarray:
+        observed = keyframe.observed()
+        return observed[feature_map.points.alive[keyframe.point_ids[observed]]]
+
+    def _matches(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, features: np.ndarray,
+                 loop: FeatureKeyframe, points: np.ndarray) -> Sim3Matches:
+        """The keyframe's points (its features' own) and the loop keyframe's matched points, each in its camera's
+        frame, with where each keyframe saw them."""
+        positions = feature_map.points.position
+        observed_in_loop = {int(p): f for f, p in enumerate(loop.point_ids) if p >= 0}
+        loop_features = np.array([observed_in_loop.get(int(p), -1) for p in points], np.int64)
+        # A point of the loop's neighbourhood the loop keyframe does not observe: where the loop keyframe would see it.
+        points_b = transform_points(se3_inverse(loop.T_world_cam), positions[points])
+        uv_b = self.camera.project(points_b)
+        level_b = np.zeros(len(points), np.int64)
+        seen = loop_features >= 0
+        uv_b[seen], level_b[seen] = loop.features.uv[loop_features[seen]], loop.features.level[loop_features[seen]]
+        return Sim3Matches(
+            points_a=transform_points(se3_inverse(keyframe.T_world_cam), positions[keyframe.point_ids[features]]),
+            points_b=points_b, uv_a=keyframe.features.uv[features], uv_b=uv_b,
+            sigma2_a=self.sigma2[keyframe.features.level[features]], sigma2_b=self.sigma2[level_b])
+
+    def _found(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, loop_frame: int, S_keyframe_loop: np.ndarray,
+               point_ids: np.ndarray, matched_features: np.ndarray, matched_points: np.ndarray,
+               with_points_only: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Points of the loop's side not matched yet, projected into the keyframe at the pose the Sim(3) gives it
+        in the loop's map, and searched among its features not matched yet (with a map point of their own where
+        ``with_points_only``: the Sim(3) needs both ends). Returns (feature indices, point ids)."""
+        T_world_keyframe = _rigid(feature_map.keyframes[loop_frame].T_world_cam @ sim3_inverse(S_keyframe_loop))
+        point_ids = np.setdiff1d(point_ids, matched_points)
+        view = project_points(feature_map.points, point_ids, T_world_keyframe, self.camera, self.orb)
+        available = np.ones(len(keyframe.features), bool)
+        available[matched_features] = False
+        if with_points_only:
+            available &= keyframe.point_ids >= 0
+        index_point, index_feature = search_by_projection(
+            keyframe.features, view.uv, feature_map.points.descriptor[view.point_ids], view.level,
+            self.config.projection_radius_px, scale_factor=self.orb.scale_factor, available=available)
+        return index_feature, view.point_ids[index_point]
+
+    # ------------------------------------------------------------------------------------ 3. correct
+
+    def correct(self, feature_map: FeatureMap, graph: Covisibility, keyframe: FeatureKeyframe, loop_frame: int,
+                verified: _Verified, window: set[int]) -> LoopCorrection:
+        """The pose graph (ORB-SLAM2 OptimizeEssentialGraph) with the window held, the keyframes and points moved
+        by it, and the loop's matches fused."""
+        frames = list(feature_map.keyframes)  # in order of creation
+        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        before = np.array([feature_map.keyframes[f].T_world_cam for f in frames])
+        edges = self._essential_graph(frames, before, graph) + self._loop_edges(
+            frames, before, graph, keyframe.frame_index, loop_frame, verified.S_keyframe_loop)
+        held = np.array([f in window for f in frames])
+        result = optimize_pose_graph(before, edges, held, iterations=self.config.pose_graph_iterations)
+        corrections = result.S_world_nodes @ np.array([se3_inverse(T) for T in before])
+        self._move_points(feature_map, frames, corrections)
+        for frame_index, S_world_cam in zip(frames, result.S_world_nodes):
+            feature_map.keyframes[frame_index].T_world_cam = _rigid(S_world_cam)
+        fused = self._fuse(feature_map, keyframe, verified)
+        timed = sorted((feature_map.keyframes[f].timestamp, C) for f, C in zip(frames, corrections))
+        positions = np.array([keyframe.centre, feature_map.keyframes[loop_frame].centre])
+        return LoopCorrection(keyframe.frame_index, loop_frame, verified.S_keyframe_loop, timed,
+                              int(np.count_nonzero(~held)), fused, result.cost_before, result.cost_after, positions)
+
+    def _essential_graph(self, frames: list[int], poses: np.ndarray, graph: Covisibility) -> list[PoseGraphEdge]:
+        """Consecutive keyframes (the odometry) and strongly covisible pairs, each at its present relative pose."""
+        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        pairs = {(i, i + 1) for i in range(len(frames) - 1)}
+        for i, frame_index in enumerate(frames):
+            for other in graph.covisible_keyframes(frame_index, self.config.essential_min_weight):
+                pairs.add((min(i, row[other]), max(i, row[other])))
+        return [PoseGraphEdge(i, j, se3_inverse(poses[i]) @ poses[j]) for i, j in sorted(pairs)]
+
+    def _loop_edges(self, frames: list[int], poses: np.ndarray, graph: Covisibility, keyframe: int, loop_frame: int,
+                    S_keyframe_loop: np.ndarray) -> list[PoseGraphEdge]:
+        """The loop joins both neighbourhoods, not only its two keyframes (ORB-SLAM2's LoopConnections): an edge
+        between each keyframe near the keyframe and each near the loop keyframe, at their relative pose once the
+        loop's side is moved rigidly onto the keyframe's by the Sim(3). With one edge, the stiffness of the many
+        covisibility edges on either side kept half the loop's error (the circuit preset played twice)."""
+        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        loop_onto_keyframe = poses[row[keyframe]] @ S_keyframe_loop @ se3_inverse(poses[row[loop_frame]])
+        # A side is its end's covisible keyframes made nearer in time to it than to the other end: after an earlier
+        # loop the loop keyframe's neighbours may include keyframes of the current side, which must not be moved.
+        sides = [[frame, *(n for n in graph.covisible_keyframes(frame, self.config.covisible_min_weight,
+                                                                 self.config.group_neighbours)
+                           if abs(row[n] - row[frame]) < abs(row[n] - row[other]))]
+                 for frame, other in ((keyframe, loop_frame), (loop_frame, keyframe))]
+        return [PoseGraphEdge(row[i], row[j], se3_inverse(poses[row[i]]) @ loop_onto_keyframe @ poses[row[j]])
+                for i in sides[0] for j in sides[1]]
+
+    @staticmethod
+    def _move_points(feature_map: FeatureMap, frames: list[int], corrections: np.ndarray) -> None:
+        """Each point moves with the oldest keyframe that observes it (the one whose view placed it first), its
+        reference distance scaled with it."""
+        table = feature_map.observations()
+        if len(table.point) == 0:
+            return
+        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        observer = np.array([row[k] for k in table.keyframe.tolist()], np.int64)
+        oldest = np.full(len(feature_map.points), len(frames), np.int64)
+        np.minimum.at(oldest, table.point, observer)
+        moved = np.flatnonzero(oldest < len(frames))
+        for i in np.unique(oldest[moved]):
+            mine = moved[oldest[moved] == i]
+            points = feature_map.points
+            points.position[mine] = transform_points(corrections[i], points.position[mine])
+            points.reference_distance[mine] *= sim3_scale(corrections[i])
+        feature_map.update_normals(moved)
+
+    @staticmethod
+    def _fuse(feature_map: FeatureMap, keyframe: FeatureKeyframe, verified: _Verified) -> int:
+        """The keyframe's features matched to the loop's points observe those from now on; a point of its own
+        there is a duplicate, merged into the loop's (ORB-SLAM2 CorrectLoop's fusion)."""
+        features, points = verified.features, verified.points
+        _, first = np.unique(points, return_index=True)  # one feature per loop point
+        features, points = features[first], points[first]
+        own = keyframe.point_ids[features]
+        duplicate = (own >= 0) & (own != points) & ~np.isin(own, points)
+        feature_map.merge_points(own[duplicate], points[duplicate])
+        keyframe.point_ids[features] = points
+        feature_map.representative_descriptors(points)
+        feature_map.update_normals(points)
+        return int(np.count_nonzero(duplicate))
+
+
+def _rigid(S: np.ndarray) -> np.ndarray:
+    """The camera pose of a similarity camera->world: its rotation and centre (the scale is the structure's)."""
+    T = S.copy()
+    T[:3, :3] /= sim3_scale(S)
+    return T
+

@@ -1,0 +1,242 @@
+"""The similarity between two keyframes from their matched map points: what a loop closure needs to know how far
+(and at what scale) the map has drifted between the two ends of the loop.
+
+Convention: ``S_a_b`` = [sR t; 0 1] maps points of camera b's frame into camera a's frame, x_a = s R x_b + t
+(vo_core/geometry/lie.py's naming of transforms, Sim(3) tangent (v, w, sigma), left updates).
+
+Three steps, as ORB-SLAM2 takes them in its loop closing:
+- ``ransac_sim3``: RANSAC over minimal sets of 3 matches, each giving a similarity in closed form (``umeyama``:
+  Horn 1987, "Closed-form solution of absolute orientation using unit quaternions", JOSA A 4(4), whose quaternion
+  form ORB-SLAM2's Sim3Solver::ComputeSim3 uses; here Umeyama 1991, "Least-squares estimation of transformation
+  parameters between two point patterns", IEEE PAMI 13(4), its SVD form with the same minimizer);
+- ``reprojection_inliers``: the test both steps share (ORB-SLAM2 Sim3Solver::CheckInliers), a match agreeing with
+  a similarity when each of its points, mapped into the other camera, lands near where that camera observed it;
+- ``refine_sim3``: least squares on the 7 parameters of the similarity over those reprojection errors both ways,
+  map points fixed, twice, the outliers of the first round left out of the second (ORB-SLAM2 Optimizer::OptimizeSim3).
+
+Errors are in units of the observation's variance: e = |pi(x) - uv|^2 / sigma2, sigma2 the squared scale of the
+ORB pyramid level the keypoint was found at (ORB-SLAM2's mvLevelSigma2), so that one chi-square bound ``chi2`` holds
+at every level.
+
+Differences from ORB-SLAM2: the inlier test compares with the observed pixels (ORB-SLAM2's Sim3Solver compares with
+the projection of each keyframe's own point, its OptimizeSim3 with the observed pixels) and calls a point behind
+either camera an outlier; RANSAC runs an adaptive number of iterations and keeps the best model rather than
+stopping at the first with enough inliers; the best model is fitted again to all its inliers; the refinement is
+scipy's trust-region least squares, its Huber kernel on each pixel component rather than on each observation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from vo_core.geometry.camera import PinholeCamera
+from vo_core.geometry.lie import sim3, sim3_exp, sim3_inverse, sim3_scale, transform_points
+from vo_core.geometry.reprojection import project_points
+
+MINIMAL_SET = 3  # three non-collinear point pairs fix a similarity (7 unknowns, 3 equations each)
+SIM3_DOF = 7
+
+
+@dataclass(frozen=True)
+class Sim3Matches:
+    """Matched map points of two keyframes a and b, each in its own camera frame, and where each was observed."""
+
+    points_a: np.ndarray  # (N, 3) point in camera a's frame
+    points_b: np.ndarray  # (N, 3) the matched point in camera b's frame
+    uv_a: np.ndarray  # (N, 2) pixel where a observed it
+    uv_b: np.ndarray  # (N, 2) pixel where b observed it
+    sigma2_a: np.ndarray  # (N,) pixel variance of the observation in a (ORB level scale^2)
+    sigma2_b: np.ndarray  # (N,)
+
+
+@dataclass(frozen=True)
+class Sim3Fit:
+    """A similarity S_a_b (4x4 [sR t; 0 1], x_a = s R x_b + t), which matches agree with it, and the RANSAC
+    iterations that found it (0 for a refinement)."""
+
+    S_a_b: np.ndarray
+    inliers: np.ndarray  # (N,) bool
+    iterations: int
+
+    @property
+    def num_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+    @property
+    def scale(self) -> float:
+        return sim3_scale(self.S_a_b)
+
+
+def _subset(matches: Sim3Matches, selection: np.ndarray) -> Sim3Matches:
+    """The matches that ``selection`` (a boolean mask or indices) picks."""
+    return Sim3Matches(
+        matches.points_a[selection], matches.points_b[selection], matches.uv_a[selection],
+        matches.uv_b[selection], matches.sigma2_a[selection], matches.sigma2_b[selection],
+    )
+
+
+# ------------------------------------------------------------------------------------------ closed form
+
+
+def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """(R, t, s) minimizing sum_i ||target_i - (s R source_i + t)||^2 for (N, 3) point sets (Umeyama 1991).
+
+    ValueError when a scale is asked of source points that all coincide (it is then undefined)."""
+    mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
+    centred_source, centred_target = source - mean_source, target - mean_target
+    variance_source = np.mean(np.sum(centred_source**2, axis=1))  # sigma_x^2, eq. (36)
+    covariance = centred_target.T @ centred_source / len(source)  # Sigma_xy, eq. (38)
+    U, d, Vt = np.linalg.svd(covariance)
+    # S = diag(1, 1, -1) when det(U) det(V) < 0: the best proper rotation, not a reflection, eq. (43)
+    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
+    R = U @ np.diag(signs) @ Vt  # eq. (40)
+    if with_scale:
+        if not variance_source > 0.0:
+            raise ValueError("umeyama: the source points all coincide, the scale is undefined")
+        s = float(d @ signs / variance_source)  # c = tr(D S) / sigma_x^2, eq. (42)
+    else:
+        s = 1.0
+    t = mean_target - s * R @ mean_source  # eq. (41)
+    return R, t, s
+
+
+def _closed_form_sim3(matches: Sim3Matches) -> np.ndarray | None:
+    """S_a_b fitted to the matches' 3D points (b's mapped onto a's), or None where they fix no similarity."""
+    try:
+        R, t, s = umeyama(matches.points_b, matches.points_a, with_scale=True)
+    except ValueError:
+        return None
+    # A scale of zero (the target points all coincide) maps everything onto one point: no similarity to score.
+    return sim3(s, R, t) if s > 0.0 and np.isfinite(s) else None
+
+
+# ------------------------------------------------------------------------------------------ errors
+
+
+def _normalized_errors(camera: PinholeCamera, points: np.ndarray, uv: np.ndarray, sigma2: np.ndarray,
+                       T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per match, the squared reprojection error of T @ point against uv in units of sigma2, and whether the
+    mapped point is in front of the camera (behind it, the projection means nothing)."""
+    mapped = transform_points(T, points)
+    residual = project_points(camera, mapped) - uv
+    errors = np.sum(residual**2, axis=1) / sigma2
+    return errors, mapped[:, 2] > 0.0
+
+
+def _two_way_errors(matches: Sim3Matches, camera: PinholeCamera,
+                    S_a_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normalized squared errors of b's points in a and of a's points in b, and where both lie in front."""
+    errors_a, front_a = _normalized_errors(camera, matches.points_b, matches.uv_a, matches.sigma2_a, S_a_b)
+    errors_b, front_b = _normalized_errors(camera, matches.points_a, matches.uv_b, matches.sigma2_b,
+                                           sim3_inverse(S_a_b))
+    return errors_a, errors_b, front_a & front_b
+
+
+def reprojection_inliers(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, chi2: float) -> np.ndarray:
+    """(N,) bool: b's point mapped into a projects within chi2 * sigma2_a (squared pixels) of uv_a, a's point
+    mapped into b by the inverse within chi2 * sigma2_b of uv_b, and both lie in front of their camera."""
+    errors_a, errors_b, in_front = _two_way_errors(matches, camera, S_a_b)
+    # NaN errors (a point on a camera's plane) compare False: outliers too.
+    return in_front & (errors_a < chi2) & (errors_b < chi2)
+
+
+# ------------------------------------------------------------------------------------------ RANSAC
+
+
+def _iterations_needed(inlier_ratio: float, probability: float, max_iterations: int) -> int:
+    """RANSAC iterations after which a minimal set of inliers only was drawn with ``probability``, given the
+    inlier ratio: log(1 - p) / log(1 - w^3) (Fischler & Bolles 1981), capped by max_iterations."""
+    all_inliers = inlier_ratio**MINIMAL_SET
+    if all_inliers >= 1.0:
+        return 1
+    if all_inliers <= 0.0 or probability >= 1.0:
+        return max_iterations
+    needed = np.ceil(np.log(1.0 - probability) / np.log(1.0 - all_inliers))
+    return int(min(max(needed, 1.0), max_iterations))
+
+
+def _refit_on_inliers(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, inliers: np.ndarray,
+                      chi2: float) -> tuple[np.ndarray, np.ndarray]:
+    """The closed form on all of the model's inliers, where it explains at least as many matches: a minimal set
+    fits its own three points' noise, all inliers average it out. Kept only when no worse, because the closed form
+    weighs 3D distances, not pixels, and distant points' depth errors can pull it away."""
+    refit = _closed_form_sim3(_subset(matches, inliers))
+    if refit is None:
+        return S_a_b, inliers
+    refit_inliers = reprojection_inliers(matches, camera, refit, chi2)
+    if np.count_nonzero(refit_inliers) >= np.count_nonzero(inliers):
+        return refit, refit_inliers
+    return S_a_b, inliers
+
+
+def ransac_sim3(matches: Sim3Matches, camera: PinholeCamera, rng: np.random.Generator, *, min_inliers: int,
+                max_iterations: int, chi2: float, probability: float) -> Sim3Fit | None:
+    """The similarity S_a_b most matches agree with (``reprojection_inliers`` at ``chi2``), from minimal sets of 3
+    drawn with ``rng`` until one of inliers only was drawn with ``probability`` (or ``max_iterations``), fitted
+    again to all its inliers; None when it has fewer than ``min_inliers`` or there are fewer than 3 matches."""
+    count = len(matches.points_a)
+    if count < MINIMAL_SET or count < min_inliers:
+        return None
+    best_S, best_inliers, best_count = None, None, 0
+    iterations, needed = 0, max_iterations
+    while iterations < needed:
+        iterations += 1
+        sample = rng.choice(count, size=MINIMAL_SET, replace=False)
+        S_a_b = _closed_form_sim3(_subset(matches, sample))
+        if S_a_b is None:
+            continue
+        inliers = reprojection_inliers(matches, camera, S_a_b, chi2)
+        inlier_count = int(np.count_nonzero(inliers))
+        if inlier_count > best_count:
+            best_S, best_inliers, best_count = S_a_b, inliers, inlier_count
+            needed = _iterations_needed(inlier_count / count, probability, max_iterations)
+    if best_S is None or best_count < max(min_inliers, MINIMAL_SET):
+        return None
+    S_a_b, inliers = _refit_on_inliers(matches, camera, best_S, best_inliers, chi2)
+    return Sim3Fit(S_a_b, inliers, iterations)
+
+
+# ------------------------------------------------------------------------------------------ refinement
+
+
+def _residuals(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
+    """Reprojection errors both ways, each pixel component divided by its observation's sigma: (4 N,)."""
+    inverse = sim3_inverse(S_a_b)
+    in_a = project_points(camera, transform_points(S_a_b, matches.points_b)) - matches.uv_a
+    in_b = project_points(camera, transform_points(inverse, matches.points_a)) - matches.uv_b
+    return np.concatenate([
+        (in_a / np.sqrt(matches.sigma2_a)[:, None]).ravel(),
+        (in_b / np.sqrt(matches.sigma2_b)[:, None]).ravel(),
+    ])
+
+
+def _optimize(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, chi2: float,
+              iterations: int) -> np.ndarray:
+    """S_a_b after ``iterations`` (at most, >= 1) of trust-region least squares over a left update exp(delta) S_a_b,
+    with Huber's kernel at sqrt(chi2): an error beyond the inlier bound counts linearly, as with ORB-SLAM2's
+    deltaHuber = sqrt(th2) (scipy applies it to each pixel component, g2o to each observation's 2-vector)."""
+    if len(matches.points_a) == 0:
+        return S_a_b
+    solution = least_squares(
+        lambda delta: _residuals(matches, camera, sim3_exp(delta) @ S_a_b),
+        np.zeros(SIM3_DOF), loss="huber", f_scale=np.sqrt(chi2), max_nfev=iterations, method="trf",
+    )
+    return sim3_exp(solution.x) @ S_a_b
+
+
+def refine_sim3(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, *, chi2: float,
+                iterations: int) -> Sim3Fit:
+    """S_a_b refined on the matches' reprojection errors both ways, map points fixed (ORB-SLAM2 OptimizeSim3):
+    a first round on the matches in front of both cameras, a second on those whose errors both ways are
+    within ``chi2`` after it, ``iterations`` at most each. Its inliers are ``reprojection_inliers`` of the result."""
+    # A point behind a camera has a projection that means nothing, and one near its plane a huge error: leave
+    # them out from the start rather than let the kernel fight them.
+    _, _, in_front = _two_way_errors(matches, camera, S_a_b)
+    first = _optimize(_subset(matches, in_front), camera, S_a_b, chi2, iterations)
+    errors_a, errors_b, in_front = _two_way_errors(matches, camera, first)
+    kept = in_front & (errors_a <= chi2) & (errors_b <= chi2)
+    second = _optimize(_subset(matches, kept), camera, first, chi2, iterations)
+    return Sim3Fit(second, reprojection_inliers(matches, camera, second, chi2), 0)
