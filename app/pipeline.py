@@ -270,6 +270,7 @@ class _Run:
             "fps": self.statistics.processed / playing_s if playing_s > 0 else None,
             "timing_ms": self.statistics.timing_ms(),
             "evaluation": _evaluate(estimate, getattr(self.sequence, "ground_truth", None)),
+            "map_segments": self.odometry.map_segments_summary(),
         }
         self.files.write_metrics(metrics)
         return RunSummary(self.files.out_dir, metrics)

@@ -4,6 +4,8 @@ files follow."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -78,11 +80,46 @@ def test_a_closed_loop_brings_the_first_round_onto_the_second(circuit_twice):
     assert first_round_ate(corrected) < 0.8 * first_round_ate(tracked)
 
 
+BLACKOUT_FROM, BLACKOUT_FRAMES, MERGE_RUN_FRAMES = 70, 50, 300  # the lens covered for 100 degrees of the turn
+
+
+def test_a_map_started_anew_after_a_loss_merges_with_the_old_one_where_the_old_place_is_seen():
+    """The circuit, dark long enough that the direct map starts anew (a new frame and scale), then back over the
+    first map's places: the maps merge, and the whole trajectory has one scale (aligned as one, about as good as each
+    map aligned on its own); the poses as tracked, two maps apart, are not."""
+    sequence = make_sequence("circuit", CIRCUIT_FRAMES, seed=1, width=320, height=240)
+    played = looping(sequence, MERGE_RUN_FRAMES)
+    dark = range(BLACKOUT_FROM, BLACKOUT_FROM + BLACKOUT_FRAMES)
+    odometry = Odometry(load_config(overrides=["features.loop_closing.enabled=true"]), sequence.camera)
+    results = [odometry.track(dataclasses.replace(frame, image=np.zeros_like(frame.image)) if k in dark else frame)
+               for k, frame in enumerate(played)]
+    odometry.close()
+    assert any(e.details.get("from_scratch") for e in events_of(results, EventKind.REINITIALIZATION))
+    merges = events_of(results, EventKind.MAPS_MERGED)
+    assert len(merges) == 1
+    truth = dict(zip(played.indices.tolist(), played.ground_truth.poses))
+    here, there = truth[merges[0].details["keyframe"]], truth[merges[0].details["merged_keyframe"]]
+    assert np.degrees(so3_geodesic_angle(here[:3, :3], there[:3, :3])) < MAX_LOOP_ANGLE_DEG
+    assert [segment["in_final_map"] for segment in odometry.map_segments_summary()] == [True, True]
+
+    posed = [r for r in results if r.T_world_cam is not None]
+    times, tracked = np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed])
+    merged = loop_corrected(merges[0].details, times, tracked)
+
+    def ate(poses, selected=slice(None)):
+        return evaluate(Trajectory(times[selected], poses[selected]), played.ground_truth)["ate"]["rmse"]
+
+    new_map = times >= merges[0].details["segments"][0][1]
+    each_alone = max(ate(tracked, new_map), ate(tracked, ~new_map))
+    assert ate(merged) < 2.0 * each_alone
+    assert ate(tracked) > 5.0 * ate(merged)
+
+
 def test_a_pose_moves_with_the_keyframe_before_it_and_earlier_maps_stay():
     times = np.arange(6, dtype=float)
     poses = np.array([se3_exp(np.array([0.1 * i, 0.0, 0.02 * i, 0.0, 0.05 * i, 0.0])) for i in times.astype(int)])
     C_first, C_second = sim3(2.0, so3_exp(np.array([0.0, 0.3, 0.0])), np.array([1.0, 0.0, 0.0])), np.eye(4)
-    correction = {"map_start": 1.0, "keyframe_times": [2.0, 4.0],
+    correction = {"segments": [[1.0, None]], "keyframe_times": [2.0, 4.0],
                   "corrections": [C_first.reshape(-1).tolist(), C_second.reshape(-1).tolist()]}
     moved = loop_corrected(correction, times, poses)
     np.testing.assert_array_equal(moved[0], poses[0])  # before the map's start: another map
@@ -99,7 +136,7 @@ def test_a_closed_loop_rewrites_the_trajectory_and_the_final_keyframes(tmp_path)
     for i, T in enumerate(poses):
         sink.on_frame(None, FrameResult(i, float(i), T, True, is_keyframe=i in (0, 2)))
     shift = se3_exp(np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0]))
-    details = {"map_start": 0.0, "keyframe_times": [0.0, 2.0],
+    details = {"segments": [[0.0, None]], "keyframe_times": [0.0, 2.0],
                "corrections": [shift.reshape(-1).tolist(), np.eye(4).reshape(-1).tolist()]}
     sink.on_event(Event(EventKind.LOOP_CLOSED, 3, 3.0, details))
     sink.write_keyframes({0: poses[0], 2: poses[2]})
@@ -134,7 +171,7 @@ def test_the_recording_shows_the_corrected_path_and_the_loop(tmp_path):
         sink.on_frame(None, FrameResult(i, float(i), se3_exp(np.array([0.1 * i, 0, 0, 0, 0, 0])), True))
     shift = se3_exp(np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0]))
     sink.on_event(Event(EventKind.LOOP_CLOSED, 2, 2.0, {
-        "map_start": 0.0, "keyframe_times": [0.0, 2.0], "positions": [[0.2, 0, 0], [0, 0.5, 0]],
+        "segments": [[0.0, None]], "keyframe_times": [0.0, 2.0], "positions": [[0.2, 0, 0], [0, 0.5, 0]],
         "corrections": [shift.reshape(-1).tolist(), np.eye(4).reshape(-1).tolist()]}))
     np.testing.assert_allclose(sink.history.positions()[:, 1], [0.5, 0.5, 0.0])
     assert len(sink._loops) == 1

@@ -113,7 +113,12 @@ class Odometry:
         self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.feature_keyframes_given: set[int] = set()  # direct keyframes handed to the feature map since it started
-        self.map_start: float | None = None  # the feature map's first keyframe's time: a loop moves the poses after it
+        # The feature map's segments (FeatureMap.begin_segment: with loop closure a map started anew after a loss is
+        # kept as a segment of its own) in time, [first keyframe's time, the next segment's or None], by segment; and
+        # those the active map holds (more than one once older ones merged into it): a loop moves their poses.
+        self.segment_times: list[list[float | None]] = []
+        self.segment = 0
+        self.map_segments: list[int] = []
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
         self.lost_frames = 0  # frames in a row without a pose
@@ -256,7 +261,7 @@ class Odometry:
         rejected start's keyframes only, at its wrong structure, and a recovery from it would bring the start back
         (TUM fr1/desk: a start refused at frame 39 was recovered from at frame 40, its scale kept)."""
         if self.features is not None and any(e.kind is EventKind.INITIALIZATION_REJECTED for e in result.events):
-            self._forget_feature_map()
+            self._forget_feature_map(keep=False)
 
     def _repeats_previous(self, raw_frame, result: FrameResult) -> bool:
         """A frame whose image is the previous frame's, bit for bit, is a camera or driver that stalled: it says
@@ -383,14 +388,18 @@ class Odometry:
                 return
         outcome = self.direct.initialize(frame, result)
         if outcome is not None and self.features is not None:
-            self._forget_feature_map()  # the new map has a new scale: the old feature map cannot serve it
+            self._forget_feature_map(keep=True)  # the new map has a new scale: the old feature map cannot serve it
             self._map_features(result, initialization=outcome)
 
-    def _forget_feature_map(self) -> None:
-        """The feature map starts over with the direct map's next start, and so does the motion it predicts from."""
+    def _forget_feature_map(self, keep: bool) -> None:
+        """The feature map starts over with the direct map's next start, and so does the motion it predicts from.
+        With loop closure, a map to ``keep`` (not a start found wrong) stays as an older segment a place seen again
+        merges with the new map."""
         self._own_the_maps()
         if not self._feature_map_empty:
-            self.features.reset()
+            self.features.reset(keep)
+            if keep and self.config.features.loop_closing.enabled:
+                self.segment += 1
         self.feature_keyframes_given.clear()
         self.posed = []
 
@@ -619,7 +628,7 @@ class Odometry:
         new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth)
                for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
         if not self.feature_keyframes_given and new:
-            self.map_start = new[0].timestamp
+            self._start_segment(new[0].timestamp)
         self.feature_keyframes_given.update(k.frame_index for k in new)
         return new, window_poses
 
@@ -640,17 +649,39 @@ class Odometry:
                 result.matches_2d = report.new_matches
                 result.matches_inlier = None
 
+    def _start_segment(self, timestamp: float) -> None:
+        """The feature map's active segment begins at ``timestamp``: an older one still open ends there."""
+        for times in self.segment_times:
+            times[1] = timestamp if times[1] is None else times[1]
+        self.segment_times[self.segment:] = [[timestamp, None]]
+        self.map_segments = [self.segment]
+
     def _report_loop(self, loop: LoopReport, result: FrameResult) -> None:
         """Every place recognised at a keyframe, taken or refused and why; a closed loop with the correction of each
-        keyframe of the map, which moves the poses tracked from it (vo_core.trajectory.loop_corrected)."""
+        keyframe of the map, and a merge with the one of the older segment's poses, which move the poses tracked
+        from them (vo_core.trajectory.loop_corrected)."""
         for candidate in loop.candidates:
             _emit(result, EventKind.LOOP_CANDIDATE, {"keyframe": loop.keyframe, **candidate.as_details()})
-        if loop.loop is None:
-            return
-        times, corrections = zip(*loop.loop.corrections)
-        _emit(result, EventKind.LOOP_CLOSED, {**loop.loop.as_details(), "ms": round(loop.ms, 1),
-                                              "map_start": self.map_start, "keyframe_times": list(times),
-                                              "corrections": [C.reshape(-1).tolist() for C in corrections]})
+        if loop.loop is not None:
+            times, corrections = zip(*loop.loop.corrections)
+            _emit(result, EventKind.LOOP_CLOSED, {
+                **loop.loop.as_details(), "ms": round(loop.ms, 1), "segments": self._times_of(self.map_segments),
+                "keyframe_times": list(times), "corrections": [C.reshape(-1).tolist() for C in corrections]})
+        if loop.merge is not None:
+            merged = self._times_of([loop.merge.segment])
+            self.map_segments.append(loop.merge.segment)
+            _emit(result, EventKind.MAPS_MERGED, {
+                **loop.merge.as_details(), "ms": round(loop.ms, 1), "segments": merged,
+                "keyframe_times": [merged[0][0]], "corrections": [loop.merge.S_active_old.reshape(-1).tolist()]})
+
+    def _times_of(self, segments: list[int]) -> list[list[float | None]]:
+        return [list(self.segment_times[i]) for i in segments]
+
+    def map_segments_summary(self) -> list[dict]:
+        """The maps the run made, in time (metrics.json): each one's span, and whether it is in the final map (an
+        older one merged into it) or stayed apart (its poses are at a scale of their own)."""
+        return [{"segment": i, "first_keyframe_time": start, "ends_at": end, "in_final_map": i in self.map_segments}
+                for i, (start, end) in enumerate(self.segment_times)]
 
     def _add_initial_tracks(self, initialization, window_poses: dict[int, np.ndarray]) -> int:
         """The initializer's feature tracks (its first points) between its two keyframes join the feature map, at

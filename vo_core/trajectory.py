@@ -58,16 +58,17 @@ class Trajectory:
 
 
 def loop_corrected(correction: dict, timestamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """Poses (N, 4, 4) moved by a loop closure, ``correction`` being its LOOP_CLOSED event's details: a pose of the
-    corrected map (timed from ``map_start`` on) moves with the keyframe before it, the one it was tracked from:
-    keyframe k (timed ``keyframe_times[k]``, increasing) has the correction ``corrections[k]`` (16 numbers, a 4x4
-    similarity world -> world), which takes a pose T to C T, the scale dropped from its rotation. Poses of earlier
-    maps stay; a pose before the first keyframe moves with it."""
+    """Poses (N, 4, 4) moved by a loop closure or a map merge, ``correction`` being its LOOP_CLOSED or MAPS_MERGED
+    event's details: a pose of the map it moved (timed within one of its ``segments``, [start, end or None]) moves
+    with the keyframe before it, the one it was tracked from: keyframe k (timed ``keyframe_times[k]``, increasing)
+    has the correction ``corrections[k]`` (16 numbers, a 4x4 similarity world -> world), which takes a pose T to C T,
+    the scale dropped from its rotation. Poses of other maps stay; a pose before the first keyframe moves with it."""
     keyframe_times = np.asarray(correction["keyframe_times"], dtype=float)
     corrections = np.asarray(correction["corrections"], dtype=float).reshape(-1, 4, 4)
     timestamps = np.asarray(timestamps, dtype=float)
     poses = np.array(poses, dtype=float).reshape(-1, 4, 4)
-    mine = timestamps >= correction["map_start"]
+    spans = np.array([[start, np.inf if end is None else end] for start, end in correction["segments"]]).reshape(-1, 2)
+    mine = np.any((timestamps[:, None] >= spans[:, 0]) & (timestamps[:, None] < spans[:, 1]), axis=1)
     keyframe = np.clip(np.searchsorted(keyframe_times, timestamps[mine], side="right") - 1, 0, None)
     moved = corrections[keyframe] @ poses[mine]
     scales = np.linalg.norm(moved[:, :3, 0], axis=1)  # a similarity's columns have its scale as their norm

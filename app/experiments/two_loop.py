@@ -121,7 +121,7 @@ def estimated_trajectory(results: list[FrameResult]) -> Trajectory:
     posed = [result for result in results if result.T_world_cam is not None]
     times = np.array([result.timestamp for result in posed])
     poses = np.array([result.T_world_cam for result in posed]) if posed else np.zeros((0, 4, 4))
-    for event in (e for result in results for e in result.events if e.kind is EventKind.LOOP_CLOSED):
+    for event in (e for result in results for e in result.events if e.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED)):
         poses = loop_corrected(event.details, times, poses)
     return Trajectory(times, poses)
 

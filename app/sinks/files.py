@@ -96,7 +96,7 @@ class FilesSink:
         elif event.kind is EventKind.INITIALIZATION_REJECTED:
             first = self._timestamps.get(event.details.get("first_frame"))
             self._retract([*event.details.get("retracted", []), *([] if first is None else [first])])
-        elif event.kind is EventKind.LOOP_CLOSED:
+        elif event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):
             self._loops.append(event.details)
             self._trajectory.correct(lambda times, poses: loop_corrected(event.details, times, poses))
             self._keyframes.correct(lambda times, poses: loop_corrected(event.details, times, poses))

@@ -227,7 +227,7 @@ class RerunSink:
         style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
         self._markers.add(event)
-        if event.kind is EventKind.LOOP_CLOSED:
+        if event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):
             self._show_loop(event.details)
 
     def _show_loop(self, loop: dict) -> None:

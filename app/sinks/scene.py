@@ -82,6 +82,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.KEYFRAME_MARGINALIZED: _ROUTINE,
     EventKind.LOOP_CANDIDATE: EventStyle("DEBUG", (200, 190, 120), marked=False),  # most are refused, as they should
     EventKind.LOOP_CLOSED: EventStyle("INFO", LOOP_COLOR),
+    EventKind.MAPS_MERGED: EventStyle("INFO", LOOP_COLOR),
     EventKind.SCALE_JUMP: EventStyle("WARN", (255, 200, 0)),
     EventKind.MAP_POINTS_CULLED: _ROUTINE,
     EventKind.WINDOW_OPTIMIZED: _ROUTINE,

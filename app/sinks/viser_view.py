@@ -255,7 +255,7 @@ class ViserView:
             if event.kind is EventKind.FRAMES_DROPPED:
                 state.dropped += int(event.details.get("count", 0))
             state.jumps += event.kind is EventKind.FRAMES_JUMPED
-            if event.kind is EventKind.LOOP_CLOSED:  # the path before it moves, and the loop is drawn
+            if event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):  # the path before it moves, and the loop is drawn
                 state.path.correct(event.details)
                 state.loops.append(np.asarray(event.details["positions"], dtype=float))
             if event_style(event).marked:

@@ -49,6 +49,7 @@ class FeatureKeyframe:
     point_ids: np.ndarray = field(default=None)  # (N,) int64, map point of each feature or NO_POINT
     image: np.ndarray | None = None  # kept while the direct twin is in the window (for viewers), then dropped
     in_direct_window: bool = True
+    segment: int = 0  # the map segment it belongs to (FeatureMap.begin_segment), set when it joins the map
 
     def __post_init__(self) -> None:
         if self.point_ids is None:
@@ -77,9 +78,11 @@ class MapPoints:
         "reference_distance": ((), np.float64),  # camera distance at creation ...
         "reference_level": ((), np.int64),  # ... and the level it was matched at (scale prediction)
         "alive": ((), bool),
+        "segment": ((), np.int64),  # the map segment the point belongs to (FeatureMap.begin_segment)
     }
 
     def __init__(self):
+        self.active_segment = 0  # the segment new points join
         self._count = 0
         self._storage = {name: np.zeros((0, *shape), dtype) for name, (shape, dtype) in self.COLUMNS.items()}
 
@@ -106,6 +109,7 @@ class MapPoints:
         values = {
             "position": position, "descriptor": descriptor, "first_keyframe": first_keyframe,
             "reference_distance": reference_distance, "reference_level": reference_level, "alive": True,
+            "segment": self.active_segment,
             "normal": np.zeros((count, 3)) if normal is None else normal,
         }
         for name, value in values.items():
@@ -148,6 +152,10 @@ class FeatureMap:
         self.points = MapPoints()
         self.index = InvertedIndex()
         self.next_keyframe_id = 0
+        # The active segment: the direct map's current start. With loop closure a map started anew after a loss is a
+        # new segment in its own frame and scale, and the older ones are kept until a place seen in both merges them
+        # (loop_closing.py); until then nothing but the loop closer looks at them.
+        self.segment = 0
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -155,6 +163,7 @@ class FeatureMap:
     # ------------------------------------------------------------------------------------ keyframes
 
     def add_keyframe(self, keyframe: FeatureKeyframe) -> None:
+        keyframe.segment = self.segment
         self.keyframes[keyframe.frame_index] = keyframe
         self.index.add(keyframe.frame_index, keyframe.bow)
         self.next_keyframe_id = keyframe.keyframe_id + 1
@@ -168,6 +177,31 @@ class FeatureMap:
         counts = self.observation_counts(orphans)
         self.points.alive[orphans[counts < 2]] = False
         self._forget_dead()
+
+    def begin_segment(self) -> None:
+        """The direct map starts anew at a new scale: what the map holds becomes an older segment."""
+        for keyframe in self.keyframes.values():
+            keyframe.in_direct_window, keyframe.image = False, None
+        self.segment += 1
+        self.points.active_segment = self.segment
+
+    def drop_segment(self) -> None:
+        """The active segment's keyframes and points go (a start found wrong); older segments stay."""
+        for frame_index in [f for f, k in self.keyframes.items() if k.segment == self.segment]:
+            self.keyframes.pop(frame_index)
+            self.index.remove(frame_index)
+        self.points.alive[self.points.segment == self.segment] = False
+        self._forget_dead()
+
+    def active_keyframes(self) -> list[FeatureKeyframe]:
+        """The active segment's keyframes, in order of creation."""
+        return [k for k in self.keyframes.values() if k.segment == self.segment]
+
+    def searchable(self) -> set[int] | None:
+        """The keyframes a recovery may search: the active segment's (None: the map has no other)."""
+        if all(k.segment == self.segment for k in self.keyframes.values()):
+            return None
+        return {k.frame_index for k in self.active_keyframes()}
 
     def reindex(self, keyframe: FeatureKeyframe) -> None:
         """The inverted index learns a keyframe's new bag of words (after features were added to it)."""

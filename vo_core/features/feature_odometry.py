@@ -33,7 +33,9 @@ class FeatureOdometry:
 
     @property
     def empty(self) -> bool:
-        return len(self.map) == 0
+        """Whether the active map has no keyframe (older segments aside)."""
+        newest = self.map.newest()
+        return newest is None or newest.segment != self.map.segment
 
     @property
     def newest_keyframe(self) -> int | None:
@@ -41,11 +43,18 @@ class FeatureOdometry:
         newest = self.map.newest()
         return None if newest is None else newest.frame_index
 
-    def reset(self) -> None:
-        """A map at a new scale starts over (the direct map initialized again from scratch)."""
-        self.map = FeatureMap()
-        if self.loop_closer is not None:
-            self.loop_closer.reset()
+    def reset(self, keep: bool = False) -> None:
+        """A map at a new scale starts over (the direct map initialized again from scratch). With loop closing, a map
+        to ``keep`` stays as an older segment that a place seen again merges with the new one; one not to keep (a
+        start found wrong) goes."""
+        if self.loop_closer is None:
+            self.map = FeatureMap()
+            return
+        if keep:
+            self.map.begin_segment()
+        else:
+            self.map.drop_segment()
+        self.loop_closer.reset(self.map.next_keyframe_id)
 
     def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
                      scene_depth: float, window_poses: dict[int, np.ndarray]) -> MappingReport:
@@ -96,10 +105,12 @@ class FeatureOdometry:
         return self.map.points.position[point_ids]
 
     def points_world(self) -> np.ndarray:
-        return self.map.points.position[self.map.points.alive]
+        """The active map's points (an older segment's are in another frame)."""
+        points = self.map.points
+        return points.position[points.alive & (points.segment == self.map.segment)]
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
-        return {k.frame_index: k.T_world_cam for k in self.map.keyframes.values()}
+        return {k.frame_index: k.T_world_cam for k in self.map.active_keyframes()}
 
     def close(self) -> None:
         """The mapper's describing thread ends (``FeatureProcess`` ends its process)."""

@@ -15,6 +15,9 @@ At every feature keyframe, ``LoopCloser.run`` is the recipe:
    fused (ORB-SLAM2 CorrectLoop and OptimizeEssentialGraph hold the loop's side instead; LDSO likewise leaves the
    window alone). The trajectory of the frames before follows their keyframes' corrections (``corrections``).
 
+A place of an older segment (a map the direct half started anew after a loss ended, FeatureMap.begin_segment) is
+found the same way; it merges that segment into the active map by one similarity (``merge``, ORB-SLAM3's Atlas).
+
 A wrong loop is worse than none: every candidate is reported with why it was taken or refused.
 
 Conventions: poses are T_world_cam; a similarity S_a_b maps points in b's frame into a's (x_a = S_a_b x_b); a
@@ -82,13 +85,32 @@ class LoopCorrection:
 
 
 @dataclass
+class MapMerge:
+    """An older segment (a map the direct half started anew after a loss ended) brought into the active map's frame
+    and scale by a place seen in both (ORB-SLAM3's Atlas merges its maps so): one similarity moves all of it."""
+
+    keyframe: int
+    merged_keyframe: int  # the older segment's keyframe of the place
+    segment: int
+    S_active_old: np.ndarray  # world -> world: the older segment's poses and points into the active map
+    fused_points: int
+    positions: np.ndarray  # (2, 3) the keyframe's and the merged keyframe's centres after the merge
+
+    def as_details(self) -> dict:
+        return {"keyframe": self.keyframe, "merged_keyframe": self.merged_keyframe, "segment": self.segment,
+                "scale": round(sim3_scale(self.S_active_old), 4), "fused_points": self.fused_points,
+                "positions": self.positions.tolist()}
+
+
+@dataclass
 class LoopReport:
-    """What loop closing did at one keyframe: nothing (``skipped`` says why), candidates tried, or a loop."""
+    """What loop closing did at one keyframe: nothing (``skipped`` says why), candidates tried, a loop, or a merge."""
 
     keyframe: int
     skipped: str = ""
     candidates: list[LoopCandidate] = field(default_factory=list)
     loop: LoopCorrection | None = None
+    merge: MapMerge | None = None
     ms: float = 0.0
 
 
@@ -108,11 +130,11 @@ class LoopCloser:
         self.camera = camera
         self.sigma2 = level_sigma2s(orb)
         self.groups: list[tuple[frozenset[int], int]] = []  # places seen by the last keyframes, and for how many
-        self.last_loop_id = 0  # keyframe_id of the last loop (the map's start counts as one)
+        self.last_loop_id = 0  # keyframe_id of the last loop or merge (the map's start counts as one)
 
-    def reset(self) -> None:
-        """A new map: nothing seen yet."""
-        self.groups, self.last_loop_id = [], 0
+    def reset(self, first_keyframe_id: int = 0) -> None:
+        """A new map, from keyframe ``first_keyframe_id`` on: nothing seen yet."""
+        self.groups, self.last_loop_id = [], first_keyframe_id
 
     def run(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, window: set[int]) -> LoopReport:
         """ORB-SLAM2 LoopClosing::Run for one new keyframe; ``window``: the direct window's frame indices (held)."""
@@ -129,7 +151,10 @@ class LoopCloser:
             verified = self.verify(feature_map, graph, keyframe, candidate)
             if verified is None:
                 continue
-            report.loop = self.correct(feature_map, graph, keyframe, candidate.frame_index, verified, window)
+            if feature_map.keyframes[candidate.frame_index].segment == keyframe.segment:
+                report.loop = self.correct(feature_map, graph, keyframe, candidate.frame_index, verified, window)
+            else:
+                report.merge = self.merge(feature_map, keyframe, candidate.frame_index, verified)
             self.last_loop_id, self.groups = keyframe.keyframe_id, []
             for other in report.candidates:  # one loop per keyframe, as ORB-SLAM2
                 if other is not candidate and not other.why:
@@ -276,7 +301,7 @@ class LoopCloser:
                 verified: _Verified, window: set[int]) -> LoopCorrection:
         """The pose graph (ORB-SLAM2 OptimizeEssentialGraph) with the window held, the keyframes and points moved
         by it, and the loop's matches fused."""
-        frames = list(feature_map.keyframes)  # in order of creation
+        frames = [k.frame_index for k in feature_map.active_keyframes()]  # in order of creation
         row = {frame_index: i for i, frame_index in enumerate(frames)}
         before = np.array([feature_map.keyframes[f].T_world_cam for f in frames])
         edges = self._essential_graph(frames, before, graph) + self._loop_edges(
@@ -293,13 +318,35 @@ class LoopCloser:
         return LoopCorrection(keyframe.frame_index, loop_frame, verified.S_keyframe_loop, timed,
                               int(np.count_nonzero(~held)), fused, result.cost_before, result.cost_after, positions)
 
+    def merge(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, merged_frame: int,
+              verified: _Verified) -> MapMerge:
+        """The older segment of ``merged_frame`` joins the active map: its keyframes and points moved by the one
+        similarity that puts the merged keyframe where the Sim(3) says the keyframe sees it, and the place's
+        duplicate points fused. The active map does not move (tracking goes on in it)."""
+        merged = feature_map.keyframes[merged_frame]
+        segment = merged.segment
+        S_active_old = keyframe.T_world_cam @ verified.S_keyframe_loop @ se3_inverse(merged.T_world_cam)
+        for other in feature_map.keyframes.values():
+            if other.segment == segment:
+                other.T_world_cam, other.segment = _rigid(S_active_old @ other.T_world_cam), feature_map.segment
+        points = feature_map.points
+        moved = np.flatnonzero(points.alive & (points.segment == segment))
+        points.position[moved] = transform_points(S_active_old, points.position[moved])
+        points.reference_distance[moved] *= sim3_scale(S_active_old)
+        points.segment[moved] = feature_map.segment
+        feature_map.update_normals(moved)
+        fused = self._fuse(feature_map, keyframe, verified)
+        return MapMerge(keyframe.frame_index, merged_frame, segment, S_active_old, fused,
+                        np.array([keyframe.centre, merged.centre]))
+
     def _essential_graph(self, frames: list[int], poses: np.ndarray, graph: Covisibility) -> list[PoseGraphEdge]:
         """Consecutive keyframes (the odometry) and strongly covisible pairs, each at its present relative pose."""
         row = {frame_index: i for i, frame_index in enumerate(frames)}
         pairs = {(i, i + 1) for i in range(len(frames) - 1)}
         for i, frame_index in enumerate(frames):
             for other in graph.covisible_keyframes(frame_index, self.config.essential_min_weight):
-                pairs.add((min(i, row[other]), max(i, row[other])))
+                if other in row:  # the active map's
+                    pairs.add((min(i, row[other]), max(i, row[other])))
         return [PoseGraphEdge(i, j, se3_inverse(poses[i]) @ poses[j]) for i, j in sorted(pairs)]
 
     def _loop_edges(self, frames: list[int], poses: np.ndarray, graph: Covisibility, keyframe: int, loop_frame: int,
@@ -314,7 +361,7 @@ class LoopCloser:
         # loop the loop keyframe's neighbours may include keyframes of the current side, which must not be moved.
         sides = [[frame, *(n for n in graph.covisible_keyframes(frame, self.config.covisible_min_weight,
                                                                  self.config.group_neighbours)
-                           if abs(row[n] - row[frame]) < abs(row[n] - row[other]))]
+                           if n in row and abs(row[n] - row[frame]) < abs(row[n] - row[other]))]
                  for frame, other in ((keyframe, loop_frame), (loop_frame, keyframe))]
         return [PoseGraphEdge(row[i], row[j], se3_inverse(poses[row[i]]) @ loop_onto_keyframe @ poses[row[j]])
                 for i in sides[0] for j in sides[1]]
@@ -323,7 +370,7 @@ class LoopCloser:
     def _move_points(feature_map: FeatureMap, frames: list[int], corrections: np.ndarray) -> None:
         """Each point moves with the oldest keyframe that observes it (the one whose view placed it first), its
         reference distance scaled with it."""
-        table = feature_map.observations()
+        table = feature_map.observations(frames)
         if len(table.point) == 0:
             return
         row = {frame_index: i for i, frame_index in enumerate(frames)}

@@ -349,7 +349,8 @@ class FeatureMapper:
         after = (observer_id > creator_id) & (observer_id <= creator_id + maintenance.check_keyframes)
         found = np.bincount(table.point[after], minlength=len(points))
         views = np.bincount(table.point, minlength=len(points))
-        judged = points.first_keyframe == newest_id - maintenance.check_keyframes
+        in_segment = points.segment == feature_map.segment  # an older segment's were judged in their own
+        judged = in_segment & (points.first_keyframe == newest_id - maintenance.check_keyframes)
         spurious = points.alive & ((judged & (found < maintenance.min_found)) | (views < 2))
         feature_map.remove_points(np.flatnonzero(spurious))
         return int(spurious.sum())

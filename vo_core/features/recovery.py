@@ -163,7 +163,7 @@ class Relocalizer:
         candidates: dict[str, int] = {}
         stages = [(LOCAL, self._local_candidates(feature_map, last_keyframe))]
         if recovery.global_search:
-            stages.append((GLOBAL, None))
+            stages.append((GLOBAL, feature_map.searchable()))
         best: PoseFromMap | None = None
         for stage, allowed in stages:
             ranked = [k for k, _, _ in feature_map.index.query(frame.bow, restrict_to=allowed) if k not in tried]
