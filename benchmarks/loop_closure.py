@@ -18,12 +18,21 @@ import numpy as np
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
+from vo_core.geometry.lie import so3_geodesic_angle
 from vo_core.synthetic import make_sequence
 from vo_core.synthetic.faults import looping
 from vo_core.system import Odometry
 from vo_core.trajectory import Trajectory, loop_corrected
 
 WIDTH, HEIGHT = 320, 240
+
+
+def ground_truth_apart(played, loop_details: dict) -> tuple[float, float]:
+    """(degrees, metres) between the loop's two keyframes by ground truth: one place is within ~15 deg and 0.2 m."""
+    truth = dict(zip(played.indices.tolist(), played.ground_truth.poses))
+    here, there = truth[loop_details["keyframe"]], truth[loop_details["loop_keyframe"]]
+    return (float(np.degrees(so3_geodesic_angle(here[:3, :3], there[:3, :3]))),
+            float(np.linalg.norm(here[:3, 3] - there[:3, 3])))
 
 
 def run(played, camera, loop_closure: bool) -> tuple[np.ndarray, np.ndarray, list]:
@@ -49,8 +58,10 @@ def main() -> None:
         start = time.perf_counter()
         times, poses, loops = run(played, sequence.camera, loop_closure)
         for loop in loops:
+            degrees, metres = ground_truth_apart(played, loop.details)
             print(f"  loop: keyframe {loop.details['keyframe']} -> {loop.details['loop_keyframe']}, "
-                  f"scale {loop.details['scale']}, {loop.details['moved_keyframes']} keyframes moved")
+                  f"scale {loop.details['scale']}, {loop.details['moved_keyframes']} keyframes moved, "
+                  f"{degrees:.1f} deg and {metres:.3f} m apart by ground truth")
         first = int(np.searchsorted(played.timestamps, times[0]))
         by_time = dict(zip(times.tolist(), poses))
         a, b = by_time.get(played.timestamps[first]), by_time.get(played.timestamps[first + frames])

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vo_core.geometry.lie import se3, se3_inverse, sim3, sim3_exp, sim3_inverse, sim3_log, sim3_scale, so3_exp
+from vo_core.geometry.lie import (se3, se3_inverse, sim3, sim3_exp, sim3_inverse, sim3_log, sim3_scale, so3_exp,
+                                  so3_geodesic_angle)
 from vo_core.geometry.pose_graph import PoseGraphEdge, PoseGraphResult, optimize_pose_graph
 
 ITERATIONS = 20  # ORB-SLAM2's
@@ -63,9 +64,20 @@ def random_similarity(rng: np.random.Generator) -> np.ndarray:
 
 
 def cost_by_lie(nodes: np.ndarray, edges: list[PoseGraphEdge]) -> float:
-    """The documented cost, sum weight |log(S_i_j^-1 S_world_i^-1 S_world_j)|^2, edge by edge with lie."""
-    return sum(edge.weight * float(np.sum(sim3_log(sim3_inverse(edge.S_i_j) @ sim3_inverse(nodes[edge.i])
-                                                   @ nodes[edge.j]) ** 2)) for edge in edges)
+    """The documented cost, sum weight e^T Lambda e with e = log(S_i_j^-1 S_world_i^-1 S_world_j), edge by edge
+    with lie."""
+    total = 0.0
+    for edge in edges:
+        error = sim3_log(sim3_inverse(edge.S_i_j) @ sim3_inverse(nodes[edge.i]) @ nodes[edge.j])
+        information = np.eye(7) if edge.information is None else edge.information
+        total += edge.weight * float(error @ information @ error)
+    return total
+
+
+def random_information(rng: np.random.Generator) -> np.ndarray:
+    """A symmetric positive definite 7x7 whose eigenvalues span four decades, as a Sim(3) fit's J^T J does."""
+    basis, _ = np.linalg.qr(rng.normal(size=(7, 7)))
+    return basis @ np.diag(10.0 ** rng.uniform(-2.0, 2.0, 7)) @ basis.T
 
 
 def test_loop_edge_corrects_scale_and_pose_drift():
@@ -116,8 +128,10 @@ def test_cost_is_the_weighted_sim3_log_of_the_documented_residual():
     rng = np.random.default_rng(3)
     nodes = np.array([random_similarity(rng) for _ in range(6)])
     edges = [PoseGraphEdge(i, j, sim3_inverse(nodes[i]) @ nodes[j] @ sim3_exp(rng.normal(scale=0.2, size=7)),
-                           weight=float(rng.uniform(0.5, 3.0)))
-             for i, j in [(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (1, 4)]]
+                           weight=float(rng.uniform(0.5, 3.0)), information=information)
+             for (i, j), information in zip([(0, 1), (1, 2), (2, 3), (3, 4), (4, 5), (5, 0), (1, 4)],
+                                            [None, random_information(rng), None, random_information(rng), None,
+                                             random_information(rng), random_information(rng)])]
     result = optimize_pose_graph(nodes, edges, first_fixed(len(nodes)), iterations=ITERATIONS)
 
     assert result.cost_before == pytest.approx(cost_by_lie(nodes, edges), rel=1e-12)
@@ -130,6 +144,24 @@ def test_cost_is_the_weighted_sim3_log_of_the_documented_residual():
                 moved = result.S_world_nodes.copy()
                 moved[node] = sim3_exp(step * np.eye(7)[axis]) @ moved[node]
                 assert cost_by_lie(moved, edges) >= result.cost_after - 1e-12
+
+
+def test_an_edge_pulls_along_what_its_information_is_sure_of():
+    """Two measurements of one relative pose that disagree: one sure of the translation and unsure of the rotation,
+    the other the reverse. The optimum takes each component from the edge sure of it (a loop's Sim(3) from a narrow
+    view pins some directions and leaves others to the odometry)."""
+    translation_sure = np.diag([1e4, 1e4, 1e4, 1e-4, 1e-4, 1e-4, 1.0])
+    rotation_sure = np.diag([1e-4, 1e-4, 1e-4, 1e4, 1e4, 1e4, 1.0])
+    by_translation = se3(so3_exp(np.array([0.0, 0.2, 0.0])), np.array([1.0, 0.0, 0.0]))
+    by_rotation = se3(so3_exp(np.array([0.0, 0.0, 0.0])), np.array([0.0, 1.0, 0.0]))
+    edges = [PoseGraphEdge(0, 1, by_translation, information=translation_sure),
+             PoseGraphEdge(0, 1, by_rotation, information=rotation_sure)]
+    result = optimize_pose_graph(np.array([np.eye(4), np.eye(4)]), edges, first_fixed(2), iterations=ITERATIONS)
+
+    moved = result.S_world_nodes[1]
+    assert so3_geodesic_angle(moved[:3, :3], by_rotation[:3, :3]) < 1e-3
+    # by_translation^-1 moved has no translation part only where moved's centre is by_translation's.
+    np.testing.assert_allclose(moved[:3, 3], by_translation[:3, 3], atol=1e-3)
 
 
 def test_deterministic():
@@ -156,6 +188,10 @@ def test_input_is_not_modified_and_a_node_without_edges_stays():
     (np.array([True, False, False]), PoseGraphEdge(0, 3, np.eye(4)), "outside"),
     (np.array([True, False, False]), PoseGraphEdge(1, 1, np.eye(4)), "itself"),
     (np.array([True, False, False]), PoseGraphEdge(0, 1, np.eye(4), weight=0.0), "positive"),
+    (np.array([True, False, False]), PoseGraphEdge(0, 1, np.eye(4), information=np.diag([1.0] * 6 + [0.0])),
+     "positive definite"),
+    (np.array([True, False, False]), PoseGraphEdge(0, 1, np.eye(4), information=np.eye(7) + np.eye(7, k=1)),
+     "symmetric"),
 ])
 def test_bad_input_is_refused(fixed, edge, message):
     with pytest.raises(ValueError, match=message):

@@ -10,13 +10,15 @@ import pytest
 
 from vo_core.eval.align import umeyama as eval_umeyama
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import sim3, sim3_inverse, sim3_scale, so3_exp, so3_geodesic_angle, transform_points
+from vo_core.geometry.lie import (sim3, sim3_exp, sim3_inverse, sim3_scale, so3_exp, so3_geodesic_angle,
+                                  transform_points)
 from vo_core.geometry.sim3_solver import (
     Sim3Fit,
     Sim3Matches,
     ransac_sim3,
     refine_sim3,
     reprojection_inliers,
+    sim3_information,
     umeyama,
 )
 
@@ -161,3 +163,36 @@ def test_umeyama_recovers_a_similarity_and_eval_still_refuses_a_still_camera():
 
     with pytest.raises(InputError, match="do not move"):
         eval_umeyama(np.ones((4, 3)), target[:4], True)
+
+
+def two_way_residuals(matches: Sim3Matches, S_a_b: np.ndarray) -> np.ndarray:
+    """The residuals refine_sim3 documents: b's points in a and a's in b, each pixel over its sigma."""
+    in_a = CAMERA.project(transform_points(S_a_b, matches.points_b)) - matches.uv_a
+    in_b = CAMERA.project(transform_points(sim3_inverse(S_a_b), matches.points_a)) - matches.uv_b
+    return np.concatenate([(in_a / np.sqrt(matches.sigma2_a)[:, None]).ravel(),
+                           (in_b / np.sqrt(matches.sigma2_b)[:, None]).ravel()])
+
+
+def test_the_information_is_j_transpose_j_of_the_two_way_residuals_in_the_left_tangent():
+    matches, _ = scene(np.random.default_rng(11), true_similarity(1.3), 40, wrong_fraction=0.0)
+    S_a_b = true_similarity(1.3)
+    step = 1e-6
+    J = np.column_stack([(two_way_residuals(matches, sim3_exp(step * e) @ S_a_b)
+                          - two_way_residuals(matches, sim3_exp(-step * e) @ S_a_b)) / (2.0 * step)
+                         for e in np.eye(7)])
+    np.testing.assert_allclose(sim3_information(matches, CAMERA, S_a_b), J.T @ J, rtol=1e-6,
+                               atol=1e-6 * np.abs(J.T @ J).max())
+
+
+def test_a_far_scene_leaves_a_rotation_translation_combination_weak():
+    """Pixels of a far scene barely tell a small turn from a sideways shift: the weakest direction of the
+    information mixes both, and it is weaker the farther the points are."""
+    rng = np.random.default_rng(12)
+    weakest = []
+    for distance in (1.0, 10.0):
+        matches, _ = scene(rng, true_similarity(1.0), 60, wrong_fraction=0.0)
+        far = Sim3Matches(matches.points_a * distance, matches.points_b * distance, matches.uv_a, matches.uv_b,
+                          matches.sigma2_a, matches.sigma2_b)
+        values = np.linalg.eigvalsh(sim3_information(far, CAMERA, true_similarity(1.0)))
+        weakest.append(values[0] / values[-1])
+    assert weakest[1] < 0.1 * weakest[0]

@@ -40,6 +40,8 @@ EVENT_COLUMNS = {
     "failed_recoveries": EventKind.RECOVERY_FAILED,
     "reinitializations": EventKind.REINITIALIZATION,
     "reinitializations_abandoned": EventKind.REINITIALIZATION_ABANDONED,
+    "loops_closed": EventKind.LOOP_CLOSED,  # with loop closure on
+    "maps_merged": EventKind.MAPS_MERGED,
 }
 
 

@@ -227,6 +227,10 @@ class LoopClosingConfig:
     min_loop_matches: int = 40  # ORB-SLAM2 ComputeSim3: the loop's neighbourhood matched 40 times, else refused
     essential_min_weight: int = 100  # ORB-SLAM2 OptimizeEssentialGraph: covisibility edges of 100 shared points
     pose_graph_iterations: int = 20  # ORB-SLAM2 OptimizeEssentialGraph: optimize(20)
+    # ours: a correction is kept when the pose graph's cost (errors weighted by the Sim(3)'s and the shared points'
+    # informations) is within this quantile of a chi-square of its degrees of freedom; the 99 % of ORB-SLAM2's
+    # inlier tests (Sim3Solver's 9.21), applied to the whole graph
+    pose_graph_chi2_probability: float = 0.99
 
 
 @dataclass

@@ -8,8 +8,9 @@ Conventions:
   keyframe's local map is worth.
 - An edge (i, j) measures ``S_i_j = S_world_i^-1 @ S_world_j``, the similarity from node j's frame into node i's.
 - Its residual is the sim(3) vector (v, w, sigma) (vo_core.geometry.lie's order)
-  ``e = log(S_i_j_measured^-1 @ S_world_i^-1 @ S_world_j) * sqrt(weight)``; the cost is sum |e|^2 (g2o's chi2
-  with information weight * I, ORB-SLAM2 uses the identity for every edge).
+  ``e = L^T log(S_i_j_measured^-1 @ S_world_i^-1 @ S_world_j)`` with L L^T = Lambda the edge's information,
+  ``weight * I`` or a 7x7 ``information`` (in the measurement's right tangent: S_i_j exp(r)); the cost is sum |e|^2
+  (g2o's chi2; ORB-SLAM2 uses the identity for every edge).
 
 Solver: Levenberg-Marquardt on the free nodes, each updated on the left, S <- exp(delta) S (lie's convention).
 Everything per edge is batched in numpy, and the Jacobian is analytic, in Adjoint form: with
@@ -55,6 +56,9 @@ class PoseGraphEdge:
     # 4x4 measured similarity [sR t; 0 1] from node j's frame to node i's: S_world_i^-1 @ S_world_j
     S_i_j: np.ndarray
     weight: float = 1.0  # information scale of this edge (all 7 components)
+    # 7x7 symmetric positive definite information of the measurement's right tangent (v, w, sigma), times weight;
+    # None: the identity
+    information: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -218,7 +222,7 @@ class _Graph:
     i: np.ndarray  # (E,) node indices
     j: np.ndarray
     measured_inverse: np.ndarray  # (E, 4, 4) S_i_j^-1
-    sqrt_weight: np.ndarray  # (E,)
+    sqrt_information: np.ndarray  # (E, 7, 7) L^T with L L^T the edge's information
     variable: np.ndarray  # (N,) index of each node among the unknowns, -1 for a node that does not move
     order: np.ndarray  # (K,) the nodes that move, in unknown order
     block_entries: np.ndarray  # (E, 4, 7, 7) position in `data` of each entry of blocks ii, jj, ij, ji; -1: none
@@ -232,12 +236,15 @@ def _build_graph(node_count: int, edges: list[PoseGraphEdge], fixed: np.ndarray)
     j = np.array([edge.j for edge in edges], dtype=np.int64)
     measured = np.array([edge.S_i_j for edge in edges], dtype=float).reshape(-1, 4, 4)
     weight = np.array([edge.weight for edge in edges], dtype=float)
+    information = np.array([np.eye(DOF) if edge.information is None else edge.information for edge in edges],
+                           dtype=float).reshape(-1, DOF, DOF)
     if np.any((i < 0) | (i >= node_count) | (j < 0) | (j >= node_count)):
         raise ValueError(f"an edge names a node outside 0..{node_count - 1}")
     if np.any(i == j):
         raise ValueError("an edge joins a node to itself")
     if np.any(~(weight > 0.0)):
         raise ValueError("edge weights must be positive")
+    sqrt_information = _sqrt_information(weight[:, None, None] * information)
     # A free node without edges has nothing to move it (and a zero block in H): it stays where it is.
     moves = ~fixed
     moves[np.setdiff1d(np.arange(node_count), np.concatenate([i, j]))] = False
@@ -260,28 +267,38 @@ def _build_graph(node_count: int, edges: list[PoseGraphEdge], fixed: np.ndarray)
     column, row = np.divmod(unique, max(size, 1))
     indptr = np.searchsorted(column, np.arange(size + 1))
     diagonal = np.flatnonzero(row == column)
-    return _Graph(i, j, _sim3_inverse(measured), np.sqrt(weight), variable, order, block_entries, row, indptr,
+    return _Graph(i, j, _sim3_inverse(measured), sqrt_information, variable, order, block_entries, row, indptr,
                   diagonal)
 
 
-def _edge_errors(graph: _Graph, S_world_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The weighted residuals (E, 7) and the nodes' inverses (N, 4, 4)."""
+def _sqrt_information(information: np.ndarray) -> np.ndarray:
+    """L^T of each (E, 7, 7) information's Cholesky factor L (so |L^T e|^2 = e^T Lambda e); ValueError where one
+    is not symmetric positive definite."""
+    if not np.allclose(information, np.swapaxes(information, 1, 2), rtol=1e-9, atol=0.0):
+        raise ValueError("edge informations must be symmetric")
+    try:
+        return np.swapaxes(np.linalg.cholesky(information), 1, 2)
+    except np.linalg.LinAlgError as error:
+        raise ValueError("edge informations must be positive definite") from error
+
+
+def _edge_errors(graph: _Graph, S_world_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The edges' errors log(...) (E, 7), their weighted residuals L^T error (E, 7), and the nodes' inverses."""
     inverses = _sim3_inverse(S_world_nodes)
-    error = graph.measured_inverse @ inverses[graph.i] @ S_world_nodes[graph.j]
-    return _sim3_log(error) * graph.sqrt_weight[:, None], inverses
+    error = _sim3_log(graph.measured_inverse @ inverses[graph.i] @ S_world_nodes[graph.j])
+    return error, np.einsum("kab,kb->ka", graph.sqrt_information, error), inverses
 
 
 def _cost(residuals: np.ndarray) -> float:
     return float(np.sum(residuals**2))
 
 
-def _normal_equations(graph: _Graph, residuals: np.ndarray, inverses: np.ndarray):
+def _normal_equations(graph: _Graph, error: np.ndarray, residuals: np.ndarray, inverses: np.ndarray):
     """H's data in the fixed pattern and the gradient J^T r, over the unknowns.
 
-    Edge Jacobians: d e / d node_j = A, d e / d node_i = -A, with A = sqrt(w) Jr^-1(e) Adj(S_world_j^-1)."""
-    error = residuals / graph.sqrt_weight[:, None]
+    Edge Jacobians: d e / d node_j = A, d e / d node_i = -A, with A = L^T Jr^-1(e) Adj(S_world_j^-1)."""
     right_jacobian_inverse = _right_jacobian_inverse(_sim3_ad(error))
-    A = graph.sqrt_weight[:, None, None] * (right_jacobian_inverse @ _sim3_adjoint(inverses[graph.j]))
+    A = graph.sqrt_information @ right_jacobian_inverse @ _sim3_adjoint(inverses[graph.j])
     AtA = np.swapaxes(A, 1, 2) @ A
     blocks = np.stack([AtA, AtA, -AtA, -AtA], axis=1)  # ii, jj, ij, ji
     used = graph.block_entries >= 0
@@ -318,7 +335,7 @@ def _apply_step(graph: _Graph, S_world_nodes: np.ndarray, delta: np.ndarray) -> 
 
 def optimize_pose_graph(S_world_nodes: np.ndarray, edges: list[PoseGraphEdge], fixed: np.ndarray, *,
                         iterations: int) -> PoseGraphResult:
-    """Minimize sum_e weight_e |log(S_i_j^-1 S_world_i^-1 S_world_j)|^2 over the nodes not ``fixed``.
+    """Minimize sum_e e^T Lambda_e e, e = log(S_i_j^-1 S_world_i^-1 S_world_j), over the nodes not ``fixed``.
 
     ``iterations`` bounds the Levenberg-Marquardt iterations, i.e. linearizations (ORB-SLAM2 runs 20); fewer run
     when the cost stops falling, and the result counts those run. Raises ValueError on malformed input or when no
@@ -334,7 +351,7 @@ def optimize_pose_graph(S_world_nodes: np.ndarray, edges: list[PoseGraphEdge], f
     if not edges:
         return PoseGraphResult(S, 0, 0.0, 0.0)
     graph = _build_graph(len(S), edges, fixed)
-    residuals, inverses = _edge_errors(graph, S)
+    error, residuals, inverses = _edge_errors(graph, S)
     cost_before = cost = _cost(residuals)
     if len(graph.order) == 0:
         return PoseGraphResult(S, 0, cost_before, cost_before)
@@ -343,10 +360,10 @@ def optimize_pose_graph(S_world_nodes: np.ndarray, edges: list[PoseGraphEdge], f
     done = 0
     while done < iterations and cost > 0.0:
         done += 1
-        data, gradient = _normal_equations(graph, residuals, inverses)
+        data, gradient = _normal_equations(graph, error, residuals, inverses)
         for _ in range(MAX_REJECTED_STEPS):
             candidate = _apply_step(graph, S, _solve_step(graph, data, gradient, damping))
-            candidate_residuals, candidate_inverses = _edge_errors(graph, candidate)
+            candidate_error, candidate_residuals, candidate_inverses = _edge_errors(graph, candidate)
             candidate_cost = _cost(candidate_residuals)
             if candidate_cost < cost:
                 break
@@ -354,7 +371,8 @@ def optimize_pose_graph(S_world_nodes: np.ndarray, edges: list[PoseGraphEdge], f
         else:
             break  # no step lowers the cost any more: converged to the solver's precision
         decrease = cost - candidate_cost
-        S, residuals, inverses, cost = candidate, candidate_residuals, candidate_inverses, candidate_cost
+        S, error, residuals, inverses = candidate, candidate_error, candidate_residuals, candidate_inverses
+        cost = candidate_cost
         damping *= LAMBDA_DOWN
         if decrease <= CONVERGED_RELATIVE_DECREASE * (cost + decrease):
             break

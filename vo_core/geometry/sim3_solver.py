@@ -34,7 +34,7 @@ from scipy.optimize import least_squares
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import sim3, sim3_exp, sim3_inverse, sim3_scale, transform_points
-from vo_core.geometry.reprojection import project_points
+from vo_core.geometry.reprojection import pose_jacobians, project_points, projection_jacobians
 
 MINIMAL_SET = 3  # three non-collinear point pairs fix a similarity (7 unknowns, 3 equations each)
 SIM3_DOF = 7
@@ -50,6 +50,11 @@ class Sim3Matches:
     uv_b: np.ndarray  # (N, 2) pixel where b observed it
     sigma2_a: np.ndarray  # (N,) pixel variance of the observation in a (ORB level scale^2)
     sigma2_b: np.ndarray  # (N,)
+
+    def subset(self, selection: np.ndarray) -> "Sim3Matches":
+        """The matches that ``selection`` (a boolean mask or indices) picks."""
+        return Sim3Matches(self.points_a[selection], self.points_b[selection], self.uv_a[selection],
+                           self.uv_b[selection], self.sigma2_a[selection], self.sigma2_b[selection])
 
 
 @dataclass(frozen=True)
@@ -68,14 +73,6 @@ class Sim3Fit:
     @property
     def scale(self) -> float:
         return sim3_scale(self.S_a_b)
-
-
-def _subset(matches: Sim3Matches, selection: np.ndarray) -> Sim3Matches:
-    """The matches that ``selection`` (a boolean mask or indices) picks."""
-    return Sim3Matches(
-        matches.points_a[selection], matches.points_b[selection], matches.uv_a[selection],
-        matches.uv_b[selection], matches.sigma2_a[selection], matches.sigma2_b[selection],
-    )
 
 
 # ------------------------------------------------------------------------------------------ closed form
@@ -163,7 +160,7 @@ def _refit_on_inliers(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.nda
     """The closed form on all of the model's inliers, where it explains at least as many matches: a minimal set
     fits its own three points' noise, all inliers average it out. Kept only when no worse, because the closed form
     weighs 3D distances, not pixels, and distant points' depth errors can pull it away."""
-    refit = _closed_form_sim3(_subset(matches, inliers))
+    refit = _closed_form_sim3(matches.subset(inliers))
     if refit is None:
         return S_a_b, inliers
     refit_inliers = reprojection_inliers(matches, camera, refit, chi2)
@@ -185,7 +182,7 @@ def ransac_sim3(matches: Sim3Matches, camera: PinholeCamera, rng: np.random.Gene
     while iterations < needed:
         iterations += 1
         sample = rng.choice(count, size=MINIMAL_SET, replace=False)
-        S_a_b = _closed_form_sim3(_subset(matches, sample))
+        S_a_b = _closed_form_sim3(matches.subset(sample))
         if S_a_b is None:
             continue
         inliers = reprojection_inliers(matches, camera, S_a_b, chi2)
@@ -227,6 +224,26 @@ def _optimize(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, ch
     return sim3_exp(solution.x) @ S_a_b
 
 
+def _left_update_jacobians(points: np.ndarray) -> np.ndarray:
+    """d(exp(delta) x)/d delta at delta = 0 for the similarity's tangent (v, w, sigma): [I, -[x]x, x], (L, 3, 7)."""
+    return np.concatenate([pose_jacobians(points), points[:, :, None]], axis=2)
+
+
+def sim3_information(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
+    """J^T J (7, 7) of the two-way reprojection residuals ``refine_sim3`` minimizes (each in units of its
+    observation's sigma), for the left update exp(delta) S_a_b: the Gauss-Newton information of S_a_b in its
+    tangent (v, w, sigma) with the map points held. Large along what the matches pin down, small along what they
+    leave free (a narrow view of a far scene trades rotation against translation, and says so here)."""
+    mapped_b = transform_points(S_a_b, matches.points_b)  # b's points in a: exp(delta) moves them
+    in_a = projection_jacobians(camera, mapped_b) @ _left_update_jacobians(mapped_b)
+    inverse = sim3_inverse(S_a_b)
+    mapped_a = transform_points(inverse, matches.points_a)  # a's points in b: S^-1 exp(-delta) moves them
+    in_b = -projection_jacobians(camera, mapped_a) @ inverse[:3, :3] @ _left_update_jacobians(matches.points_a)
+    J = np.concatenate([in_a / np.sqrt(matches.sigma2_a)[:, None, None],
+                        in_b / np.sqrt(matches.sigma2_b)[:, None, None]]).reshape(-1, SIM3_DOF)
+    return J.T @ J
+
+
 def refine_sim3(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, *, chi2: float,
                 iterations: int) -> Sim3Fit:
     """S_a_b refined on the matches' reprojection errors both ways, map points fixed (ORB-SLAM2 OptimizeSim3):
@@ -235,8 +252,8 @@ def refine_sim3(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, 
     # A point behind a camera has a projection that means nothing, and one near its plane a huge error: leave
     # them out from the start rather than let the kernel fight them.
     _, _, in_front = _two_way_errors(matches, camera, S_a_b)
-    first = _optimize(_subset(matches, in_front), camera, S_a_b, chi2, iterations)
+    first = _optimize(matches.subset(in_front), camera, S_a_b, chi2, iterations)
     errors_a, errors_b, in_front = _two_way_errors(matches, camera, first)
     kept = in_front & (errors_a <= chi2) & (errors_b <= chi2)
-    second = _optimize(_subset(matches, kept), camera, first, chi2, iterations)
+    second = _optimize(matches.subset(kept), camera, first, chi2, iterations)
     return Sim3Fit(second, reprojection_inliers(matches, camera, second, chi2), 0)
