@@ -384,8 +384,7 @@ class LoopCloser:
         pulls a little, one sharing many is as stiff as its points make it."""
         a, b = feature_map.keyframes[frame_a], feature_map.keyframes[frame_b]
         observed_a, observed_b = self._with_points(feature_map, a), self._with_points(feature_map, b)
-        _, index_a, index_b = np.intersect1d(a.point_ids[observed_a], b.point_ids[observed_b],
-                                             assume_unique=True, return_indices=True)
+        _, index_a, index_b = np.intersect1d(a.point_ids[observed_a], b.point_ids[observed_b], return_indices=True)
         matches = self._matches(feature_map, a, observed_a[index_a], b, a.point_ids[observed_a[index_a]])
         inliers = reprojection_inliers(matches, self.camera, S_a_b, self.config.refine_chi2)
         return np.eye(SIM3_DOF) + sim3_information(matches.subset(inliers), self.camera, S_a_b)
@@ -448,7 +447,9 @@ class LoopCloser:
         own = keyframe.point_ids[features]
         duplicate = (own >= 0) & (own != points) & ~np.isin(own, points)
         feature_map.merge_points(own[duplicate], points[duplicate])
-        keyframe.point_ids[features] = points
+        # A point the keyframe observes at another feature keeps that observation: one per point and keyframe.
+        elsewhere = np.isin(points, keyframe.point_ids[np.setdiff1d(keyframe.observed(), features)])
+        keyframe.point_ids[features[~elsewhere]] = points[~elsewhere]
         feature_map.representative_descriptors(points)
         feature_map.update_normals(points)
         return int(np.count_nonzero(duplicate))
