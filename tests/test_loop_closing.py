@@ -176,3 +176,21 @@ def test_the_recording_shows_the_corrected_path_and_the_loop(tmp_path):
     np.testing.assert_allclose(sink.history.positions()[:, 1], [0.5, 0.5, 0.0])
     assert len(sink._loops) == 1
     sink.close()
+
+
+def test_a_loops_fusion_leaves_one_observation_per_point_in_the_keyframe():
+    from vo_core.features.loop_closing import LoopCloser, _Verified
+
+    feature_map = FeatureMap()
+    features = Features(np.zeros((3, 2)), np.zeros(3, np.int64), np.zeros(3), np.zeros(3, np.float32),
+                        np.zeros((3, 32), np.uint8))
+    keyframe = FeatureKeyframe(0, 0, 0.0, np.eye(4), features, BowVector.empty(), np.zeros(3, np.int64),
+                               point_ids=np.array([0, 1, NO_POINT], np.int64))
+    feature_map.add_keyframe(keyframe)
+    feature_map.points.add(np.ones((3, 3)), np.zeros((3, 32), np.uint8), 0, np.ones(3), np.zeros(3, np.int64))
+    # The loop matched feature 1 (its own point 1) and feature 2 (no point) to loop point 0, which feature 0 sees.
+    verified = _Verified(np.eye(4), np.eye(7), np.array([1, 2]), np.array([0, 2]))
+    LoopCloser._fuse(feature_map, keyframe, verified)
+    observed = keyframe.point_ids[keyframe.point_ids >= 0]
+    assert len(observed) == len(np.unique(observed))
+    assert keyframe.point_ids[2] == 2
