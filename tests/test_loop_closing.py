@@ -194,3 +194,17 @@ def test_a_loops_fusion_leaves_one_observation_per_point_in_the_keyframe():
     observed = keyframe.point_ids[keyframe.point_ids >= 0]
     assert len(observed) == len(np.unique(observed))
     assert keyframe.point_ids[2] == 2
+
+
+def test_a_merge_moves_only_the_older_maps_poses_and_the_header_says_so(tmp_path):
+    sink = FilesSink(tmp_path)
+    sink.begin(load_config())
+    for i in range(4):
+        sink.on_frame(None, FrameResult(i, float(i), se3_exp(np.array([0.1 * i, 0, 0, 0, 0, 0])), True))
+    shift = se3_exp(np.array([0.0, 0.5, 0.0, 0.0, 0.0, 0.0]))
+    sink.on_event(Event(EventKind.MAPS_MERGED, 3, 3.0, {
+        "segments": [[0.0, 2.0]], "keyframe_times": [0.0], "corrections": [shift.reshape(-1).tolist()],
+        "scale": 1.0, "positions": [[0, 0, 0], [0, 0, 0]]}))
+    sink.close()
+    np.testing.assert_allclose(read_trajectory(tmp_path / TRAJECTORY_FILE).positions[:, 1], [0.5, 0.5, 0, 0])
+    assert "merged into the final map at frame 3" in (tmp_path / TRAJECTORY_FILE).read_text()

@@ -98,6 +98,11 @@ class FilesSink:
             self._retract([*event.details.get("retracted", []), *([] if first is None else [first])])
         elif event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):
             self._loops.append(event.details)
+            if event.kind is EventKind.MAPS_MERGED:  # the header says which maps the trajectory joins
+                start, end = event.details["segments"][0]
+                self._trajectory.notes.append(
+                    f"the map of {start:.9f}-{end:.9f} s merged into the final map at frame {event.frame_index} "
+                    f"(scale {event.details['scale']}): one frame and scale")
             self._trajectory.correct(lambda times, poses: loop_corrected(event.details, times, poses))
             self._keyframes.correct(lambda times, poses: loop_corrected(event.details, times, poses))
 
@@ -204,6 +209,7 @@ class PoseLines:
         self.path = path
         self._lines: dict[float, tuple[np.ndarray, str]] = {}  # timestamp -> (T_world_cam, its line)
         self._latest = -np.inf
+        self.notes: list[str] = []  # comment lines after the header (the map segments merged into the final map)
         self._handle = open(path, "w", buffering=1)
         self._handle.write(TUM_HEADER)
 
@@ -249,7 +255,8 @@ class PoseLines:
 
     def _rewrite(self) -> None:
         self._handle.close()
-        text = TUM_HEADER + "".join(self._lines[t][1] + "\n" for t in sorted(self._lines))
+        notes = "".join(f"# {note}\n" for note in self.notes)
+        text = TUM_HEADER + notes + "".join(self._lines[t][1] + "\n" for t in sorted(self._lines))
         self._handle = rewritten_line_file(self.path, text)
 
 
