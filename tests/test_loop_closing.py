@@ -16,7 +16,7 @@ from vo_core.events import Event, EventKind, FrameResult
 from vo_core.features.feature_map import NO_POINT, FeatureMap, FeatureKeyframe
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector
-from vo_core.geometry.lie import se3_exp, sim3, so3_exp, so3_geodesic_angle
+from vo_core.geometry.lie import se3_exp, se3_inverse, sim3, so3_exp, so3_geodesic_angle
 from vo_core.synthetic import make_sequence
 from vo_core.synthetic.faults import looping
 from vo_core.system import Odometry
@@ -29,13 +29,13 @@ MAX_LOOP_DISTANCE_M = 0.2
 
 @pytest.fixture(scope="module")
 def circuit_twice():
-    """The circuit preset played twice round, loop closure on: (the played sequence, the results)."""
+    """The circuit preset played twice round, loop closure on: (the played sequence, the results, the odometry)."""
     sequence = make_sequence("circuit", CIRCUIT_FRAMES, seed=1, width=320, height=240)
     played = looping(sequence, 2 * CIRCUIT_FRAMES)
     odometry = Odometry(load_config(overrides=["features.loop_closing.enabled=true"]), sequence.camera)
     results = [odometry.track(frame) for frame in played]
     odometry.close()
-    return played, results
+    return played, results, odometry
 
 
 def events_of(results, kind: EventKind) -> list[Event]:
@@ -43,7 +43,7 @@ def events_of(results, kind: EventKind) -> list[Event]:
 
 
 def test_the_second_round_closes_a_loop_with_the_first_where_the_ground_truth_has_one_place(circuit_twice):
-    played, results = circuit_twice
+    played, results, _ = circuit_twice
     truth = dict(zip(played.indices.tolist(), played.ground_truth.poses))
     loops = events_of(results, EventKind.LOOP_CLOSED)
     assert loops, "the circuit's second round never closed a loop"
@@ -59,7 +59,7 @@ def test_the_second_round_closes_a_loop_with_the_first_where_the_ground_truth_ha
 def test_a_closed_loop_brings_the_first_round_onto_the_second(circuit_twice):
     """The corrected poses (the events' corrections applied to what tracking gave) put the same place seen a round
     apart closer together, and the first round nearer its ground truth."""
-    played, results = circuit_twice
+    played, results, _ = circuit_twice
     posed = [r for r in results if r.T_world_cam is not None]
     times = np.array([r.timestamp for r in posed])
     tracked = np.array([r.T_world_cam for r in posed])
@@ -113,6 +113,28 @@ def test_a_map_started_anew_after_a_loss_merges_with_the_old_one_where_the_old_p
     each_alone = max(ate(tracked, new_map), ate(tracked, ~new_map))
     assert ate(merged) < 2.0 * each_alone
     assert ate(tracked) > 5.0 * ate(merged)
+
+
+def test_a_loop_the_map_cannot_absorb_is_refused_and_leaves_the_map_as_it_was(circuit_twice):
+    """A look-alike place whose Sim(3) is wrong by far more than any drift (here: the true loop turned by 30 degrees
+    and scaled by 2) bends the map against the information of its edges: the pose graph's chi-square test refuses it,
+    and no keyframe moves."""
+    from vo_core.features.loop_closing import LoopCandidate, _Verified
+
+    _, _, odometry = circuit_twice
+    feature_map, closer = odometry.features.map, odometry.features.loop_closer
+    keyframes = list(feature_map.keyframes.values())
+    keyframe, loop_keyframe = keyframes[-1], keyframes[0]  # the newest and the oldest: a round apart
+    true_loop = se3_inverse(keyframe.T_world_cam) @ loop_keyframe.T_world_cam
+    wrong = sim3(2.0, so3_exp(np.array([0.0, np.radians(30.0), 0.0])), np.zeros(3)) @ true_loop
+    poses_before = {f: k.T_world_cam.copy() for f, k in feature_map.keyframes.items()}
+    candidate = LoopCandidate(loop_keyframe.frame_index, 1.0)
+    verified = _Verified(wrong, 1e4 * np.eye(7), np.zeros(0, np.int64), np.zeros(0, np.int64))
+    window = {keyframe.frame_index}
+    assert closer.correct(feature_map, feature_map.covisibility_graph(), keyframe, candidate, verified, window) is None
+    assert "chi-square" in candidate.why
+    for frame_index, T_world_cam in poses_before.items():
+        np.testing.assert_array_equal(feature_map.keyframes[frame_index].T_world_cam, T_world_cam)
 
 
 def test_a_pose_moves_with_the_keyframe_before_it_and_earlier_maps_stay():

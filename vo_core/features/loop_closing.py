@@ -458,9 +458,11 @@ class LoopCloser:
 def _loop_information(verified: _Verified, T_i_keyframe: np.ndarray, S_i_j: np.ndarray) -> np.ndarray:
     """The Sim(3)'s information carried to the loop edge (i, j) it measures, S_i_j = T_i_keyframe S_keyframe_loop B:
     a left change exp(d) of S_keyframe_loop is the right change r = M d of S_i_j, M = Adj(S_i_j^-1 T_i_keyframe),
-    so the information of r is M^-T Lambda M^-1."""
+    so the information of r is M^-T Lambda M^-1; plus the identity, as every essential edge (``_shared_information``),
+    which keeps it positive definite where the matches leave a direction undetermined."""
     to_edge_inverse = np.linalg.inv(sim3_adjoint(sim3_inverse(S_i_j) @ T_i_keyframe))
-    return to_edge_inverse.T @ verified.information @ to_edge_inverse
+    carried = to_edge_inverse.T @ verified.information @ to_edge_inverse
+    return 0.5 * (carried + carried.T) + np.eye(SIM3_DOF)
 
 
 def _rigid(S: np.ndarray) -> np.ndarray:

@@ -274,7 +274,8 @@ def _build_graph(node_count: int, edges: list[PoseGraphEdge], fixed: np.ndarray)
 def _sqrt_information(information: np.ndarray) -> np.ndarray:
     """L^T of each (E, 7, 7) information's Cholesky factor L (so |L^T e|^2 = e^T Lambda e); ValueError where one
     is not symmetric positive definite."""
-    if not np.allclose(information, np.swapaxes(information, 1, 2), rtol=1e-9, atol=0.0):
+    scale = np.abs(information).max(axis=(1, 2), keepdims=True)  # rounding is relative to each matrix's size
+    if not np.all(np.abs(information - np.swapaxes(information, 1, 2)) <= 1e-9 * scale):
         raise ValueError("edge informations must be symmetric")
     try:
         return np.swapaxes(np.linalg.cholesky(information), 1, 2)
