@@ -210,7 +210,9 @@ class LoopClosingConfig:
     enabled: bool = False
     min_keyframes_between: int = 10  # ORB-SLAM2 DetectLoop: no loop within 10 keyframes of the map's start or last loop
     covisible_min_weight: int = 15  # ORB-SLAM2 KeyFrame::UpdateConnections: the neighbourhood a loop must leave
-    group_neighbours: int = 10  # ORB-SLAM2 DetectLoopCandidates: a candidate's score accumulated over 10 covisibles
+    # ORB-SLAM2 DetectLoopCandidates: a candidate's score accumulated over 10 covisibles; ours: also each side of a
+    # loop (its end and these best covisibles) for the loop edges and the Sim(3)'s refinement on both neighbourhoods
+    group_neighbours: int = 10
     group_score_ratio: float = 0.75  # ORB-SLAM2 DetectLoopCandidates: groups within 0.75 of the best accumulated score
     consistency: int = 3  # ORB-SLAM2 mnCovisibilityConsistencyTh: seen again by 3 consecutive keyframes after the first
     bow_max_distance: int = 50  # ORB-SLAM2 ComputeSim3: SearchByBoW with TH_LOW ...
@@ -221,9 +223,10 @@ class LoopClosingConfig:
     ransac_max_iterations: int = 300
     ransac_chi2: float = 9.21  # ORB-SLAM2 Sim3Solver: 99 % of a 2-DOF chi-square, on the level-normalized error
     refine_chi2: float = 10.0  # ORB-SLAM2 OptimizeSim3: th2 = 10 ...
-    refine_iterations: int = 5  # ... 5 iterations, outliers out, 5 more
+    refine_iterations: int = 5  # ... 5 iterations, outliers out, 5 more (the same again on both neighbourhoods)
     min_refined_inliers: int = 20  # ORB-SLAM2 ComputeSim3: nInliers >= 20 after OptimizeSim3
-    projection_radius_px: float = 10.0  # ORB-SLAM2 ComputeSim3: SearchByProjection(pKF, mScw, ..., 10)
+    # ORB-SLAM2 ComputeSim3: SearchByProjection(pKF, mScw, ..., 10); the neighbourhoods' searches use it too
+    projection_radius_px: float = 10.0
     min_loop_matches: int = 40  # ORB-SLAM2 ComputeSim3: the loop's neighbourhood matched 40 times, else refused
     essential_min_weight: int = 100  # ORB-SLAM2 OptimizeEssentialGraph: covisibility edges of 100 shared points
     pose_graph_iterations: int = 20  # ORB-SLAM2 OptimizeEssentialGraph: optimize(20)

@@ -7,8 +7,10 @@ At every feature keyframe, ``LoopCloser.run`` is the recipe:
    similar as its least similar neighbour, grouped with their covisibles (accumulated scores), and kept only when
    the same place comes back for ``consistency`` keyframes in a row (ORB-SLAM2 DetectLoop, DetectLoopCandidates).
 2. ``verify``: per candidate, BoW matches between both keyframes' map points, a Sim(3) by RANSAC, more matches
-   guided by it, refined; then the candidate's whole neighbourhood, projected into the keyframe at the pose the
-   Sim(3) gives it, must be found there (ORB-SLAM2 ComputeSim3).
+   guided by it, refined, then refined again on both keyframes' neighbourhoods (each side's points found by the
+   other side's keyframes: ours, where ORB-SLAM2 refines on the two keyframes only); then the candidate's whole
+   neighbourhood, projected into the keyframe at the pose the Sim(3) gives it, must be found there (ORB-SLAM2
+   ComputeSim3).
 3. ``correct``: a pose graph over the map's keyframes in Sim(3) (consecutive keyframes, strong covisibility, the
    loop), with the direct window held where it is: the older keyframes and their points move to where the current
    map sees them, so tracking goes on from the same window without a jump, and the loop's duplicate points are
@@ -41,8 +43,9 @@ from vo_core.features.vocabulary import bow_score
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, sim3_adjoint, sim3_inverse, sim3_scale, transform_points
 from vo_core.geometry.pose_graph import PoseGraphEdge, optimize_pose_graph
-from vo_core.geometry.sim3_solver import (SIM3_DOF, Sim3Matches, ransac_sim3, refine_sim3, reprojection_inliers,
-                                          sim3_information)
+from vo_core.geometry.sim3_solver import (SIM3_DOF, Sim3Matches, Sim3Sightings, ransac_sim3, refine_sim3,
+                                          refine_sim3_on_sightings, reprojection_inliers, sim3_information,
+                                          sim3_information_on_sightings)
 
 
 @dataclass
@@ -55,13 +58,14 @@ class LoopCandidate:
     why: str = ""
     bow_matches: int = 0
     inliers: int = 0
+    sightings: int = 0  # of either side's points by the other side's keyframes, inliers of the refined Sim(3)
     loop_matches: int = 0
     scale: float | None = None
 
     def as_details(self) -> dict:
         return {"candidate": self.frame_index, "score": round(self.score, 4), "consistency": self.consistency,
                 "accepted": not self.why, "why": self.why or "accepted", "bow_matches": self.bow_matches,
-                "inliers": self.inliers, "loop_matches": self.loop_matches,
+                "inliers": self.inliers, "sightings": self.sightings, "loop_matches": self.loop_matches,
                 "scale": None if self.scale is None else round(self.scale, 4)}
 
 
@@ -232,16 +236,19 @@ class LoopCloser:
         features, points = np.concatenate([features, more_features]), np.concatenate([points, more_points])
         fit = refine_sim3(self._matches(feature_map, keyframe, features, loop, points), self.camera, fit.S_a_b,
                           chi2=config.refine_chi2, iterations=config.refine_iterations)
-        candidate.inliers, candidate.scale = fit.num_inliers, fit.scale
+        candidate.inliers = fit.num_inliers
         if fit.num_inliers < config.min_refined_inliers:
             candidate.why = f"{fit.num_inliers} inliers after refinement, fewer than {config.min_refined_inliers}"
             return None
-        information = sim3_information(self._matches(feature_map, keyframe, features[fit.inliers], loop,
-                                                     points[fit.inliers]), self.camera, fit.S_a_b)
-        features, points = features[fit.inliers], points[fit.inliers]
+        S_keyframe_loop, information = self._refined_on_neighbourhoods(feature_map, graph, keyframe, candidate,
+                                                                       fit.S_a_b)
+        candidate.scale = sim3_scale(S_keyframe_loop)
+        kept = reprojection_inliers(self._matches(feature_map, keyframe, features, loop, points), self.camera,
+                                    S_keyframe_loop, config.refine_chi2)
+        features, points = features[kept], points[kept]
         # The loop's whole neighbourhood, seen from the pose the Sim(3) gives the keyframe, must be found there.
         neighbourhood = [loop.frame_index, *graph.covisible_keyframes(loop.frame_index, 1)]
-        found_features, found_points = self._found(feature_map, keyframe, loop.frame_index, fit.S_a_b,
+        found_features, found_points = self._found(feature_map, keyframe, loop.frame_index, S_keyframe_loop,
                                                    feature_map.points_of(neighbourhood), features, points,
                                                    with_points_only=False)
         candidate.loop_matches = len(features) + len(found_features)
@@ -249,8 +256,69 @@ class LoopCloser:
             candidate.why = (f"{candidate.loop_matches} matches with the loop's neighbourhood, fewer than "
                              f"{config.min_loop_matches}")
             return None
-        return _Verified(fit.S_a_b, information, np.concatenate([features, found_features]),
+        return _Verified(S_keyframe_loop, information, np.concatenate([features, found_features]),
                          np.concatenate([points, found_points]))
+
+    def _refined_on_neighbourhoods(self, feature_map: FeatureMap, graph: Covisibility, keyframe: FeatureKeyframe,
+                                   candidate: LoopCandidate,
+                                   S_keyframe_loop: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Sim(3) refined on the two neighbourhoods, not the two keyframes: the loop side's points found by the
+        keyframe's side's keyframes, and the other way round, each searched where the Sim(3) puts it. Between two
+        keyframes a narrow view of a far scene trades rotation against translation, and the scale rests on their
+        own points' depths; the neighbourhoods bring more points, each triangulated on its own, seen from keyframes
+        with baseline between them over a wider field, and their errors average out (tests/
+        test_geometry_sim3_solver.py: a side of three keyframes halves the errors at least). Returns
+        (S_keyframe_loop, its information from the inlying sightings); ``candidate.sightings`` counts them."""
+        loop = feature_map.keyframes[candidate.frame_index]
+        order = {f: k.keyframe_id for f, k in feature_map.keyframes.items()
+                 if k.segment in (keyframe.segment, loop.segment)}
+        own_side, loop_side = self._sides(graph, keyframe.frame_index, loop.frame_index, order)
+        own_points, loop_points = feature_map.points_of(own_side), feature_map.points_of(loop_side)
+        # A point both sides observe (fused by an earlier loop) already ties them where the map put it: no measure.
+        into_own = self._sightings(feature_map, own_side, keyframe, loop, S_keyframe_loop,
+                                   np.setdiff1d(loop_points, own_points))
+        into_loop = self._sightings(feature_map, loop_side, loop, keyframe, sim3_inverse(S_keyframe_loop),
+                                    np.setdiff1d(own_points, loop_points))
+        S_keyframe_loop, inliers_own, inliers_loop = refine_sim3_on_sightings(
+            into_own, into_loop, self.camera, S_keyframe_loop, chi2=self.config.refine_chi2,
+            iterations=self.config.refine_iterations)
+        candidate.sightings = int(np.count_nonzero(inliers_own) + np.count_nonzero(inliers_loop))
+        information = sim3_information_on_sightings(into_own.subset(inliers_own), into_loop.subset(inliers_loop),
+                                                    self.camera, S_keyframe_loop)
+        return S_keyframe_loop, information
+
+    def _sightings(self, feature_map: FeatureMap, seers: list[int], seer_reference: FeatureKeyframe,
+                   seen_reference: FeatureKeyframe, S_seer_seen: np.ndarray, point_ids: np.ndarray) -> Sim3Sightings:
+        """The seen side's points found by each keyframe of the seeing side (``seers``), projected at the pose the
+        Sim(3) S_seer_seen (seer reference <- seen reference) gives it in the seen side's map, and searched among
+        all its features (ORB-SLAM2 SearchByProjection at ComputeSim3's radius)."""
+        positions = feature_map.points.position
+        S_world_seer = seen_reference.T_world_cam @ sim3_inverse(S_seer_seen)  # the seer reference in the seen map
+        T_seen_world = se3_inverse(seen_reference.T_world_cam)
+        parts = []
+        for frame in seers:
+            seer = feature_map.keyframes[frame]
+            T_view_reference = se3_inverse(seer.T_world_cam) @ seer_reference.T_world_cam
+            view = project_points(feature_map.points, point_ids, _rigid(S_world_seer @ se3_inverse(T_view_reference)),
+                                  self.camera, self.orb)
+            index_point, index_feature = search_by_projection(
+                seer.features, view.uv, feature_map.points.descriptor[view.point_ids], view.level,
+                self.config.projection_radius_px, scale_factor=self.orb.scale_factor)
+            parts.append(Sim3Sightings(
+                transform_points(T_seen_world, positions[view.point_ids[index_point]]),
+                np.broadcast_to(T_view_reference, (len(index_point), 4, 4)), seer.features.uv[index_feature],
+                self.sigma2[seer.features.level[index_feature]]))
+        return Sim3Sightings.concatenate(parts)
+
+    def _sides(self, graph: Covisibility, keyframe: int, loop_frame: int,
+               order: dict[int, int]) -> tuple[list[int], list[int]]:
+        """Each end of the loop with its best covisible keyframes made nearer (by ``order``, creation) to it than
+        to the other end: after an earlier loop the loop keyframe's neighbours may include keyframes of the current
+        side, which must not be taken for the loop's."""
+        return tuple([frame, *(n for n in graph.covisible_keyframes(frame, self.config.covisible_min_weight,
+                                                                     self.config.group_neighbours)
+                               if n in order and abs(order[n] - order[frame]) < abs(order[n] - order[other]))]
+                     for frame, other in ((keyframe, loop_frame), (loop_frame, keyframe)))
 
     def _bow_matches(self, feature_map: FeatureMap, keyframe: FeatureKeyframe,
                      loop: FeatureKeyframe) -> tuple[np.ndarray, np.ndarray]:
@@ -403,12 +471,7 @@ class LoopCloser:
         the odometry that disagrees with it (the circuit's 240-frame seed-0 second loop, 1.8 deg off)."""
         row = {frame_index: i for i, frame_index in enumerate(frames)}
         loop_onto_keyframe = poses[row[keyframe]] @ verified.S_keyframe_loop @ se3_inverse(poses[row[loop_frame]])
-        # A side is its end's covisible keyframes made nearer in time to it than to the other end: after an earlier
-        # loop the loop keyframe's neighbours may include keyframes of the current side, which must not be moved.
-        sides = [[frame, *(n for n in graph.covisible_keyframes(frame, self.config.covisible_min_weight,
-                                                                 self.config.group_neighbours)
-                           if n in row and abs(row[n] - row[frame]) < abs(row[n] - row[other]))]
-                 for frame, other in ((keyframe, loop_frame), (loop_frame, keyframe))]
+        sides = self._sides(graph, keyframe, loop_frame, row)
         edges = []
         for i in sides[0]:
             for j in sides[1]:

@@ -14,6 +14,11 @@ Three steps, as ORB-SLAM2 takes them in its loop closing:
 - ``refine_sim3``: least squares on the 7 parameters of the similarity over those reprojection errors both ways,
   map points fixed, twice, the outliers of the first round left out of the second (ORB-SLAM2 Optimizer::OptimizeSim3).
 
+A loop joins two neighbourhoods, not two keyframes: ``Sim3Sightings`` are one side's points seen by the other side's
+keyframes (each at its pose relative to its side's reference keyframe), and ``refine_sim3_on_sightings`` refines the
+same similarity on all of them, so that its rotation, translation and scale rest on several views with baseline
+between them (two keyframes' matches are one view each way; ``sightings_of`` writes them as sightings).
+
 Errors are in units of the observation's variance: e = |pi(x) - uv|^2 / sigma2, sigma2 the squared scale of the
 ORB pyramid level the keypoint was found at (ORB-SLAM2's mvLevelSigma2), so that one chi-square bound ``chi2`` holds
 at every level.
@@ -55,6 +60,36 @@ class Sim3Matches:
         """The matches that ``selection`` (a boolean mask or indices) picks."""
         return Sim3Matches(self.points_a[selection], self.points_b[selection], self.uv_a[selection],
                            self.uv_b[selection], self.sigma2_a[selection], self.sigma2_b[selection])
+
+
+@dataclass(frozen=True)
+class Sim3Sightings:
+    """One side's points seen by keyframes of the other side: what refines S_a_b on two neighbourhoods. Sightings
+    into a: b's side's points, each in b's camera frame, seen by a keyframe of a's side whose camera is T_view_reference
+    (rigid, a's map units) from a's; sightings into b likewise with a's points and b's side."""
+
+    points: np.ndarray  # (N, 3) in the seen side's reference camera frame
+    T_view_reference: np.ndarray  # (N, 4, 4) the seeing keyframe's camera from its side's reference camera
+    uv: np.ndarray  # (N, 2) pixel where the seeing keyframe observed it
+    sigma2: np.ndarray  # (N,) pixel variance of that observation
+
+    def subset(self, selection: np.ndarray) -> "Sim3Sightings":
+        return Sim3Sightings(self.points[selection], self.T_view_reference[selection], self.uv[selection],
+                             self.sigma2[selection])
+
+    @staticmethod
+    def concatenate(parts: list["Sim3Sightings"]) -> "Sim3Sightings":
+        if not parts:
+            return Sim3Sightings(np.zeros((0, 3)), np.zeros((0, 4, 4)), np.zeros((0, 2)), np.zeros(0))
+        return Sim3Sightings(*(np.concatenate([getattr(p, name) for p in parts])
+                               for name in ("points", "T_view_reference", "uv", "sigma2")))
+
+
+def sightings_of(matches: Sim3Matches) -> tuple[Sim3Sightings, Sim3Sightings]:
+    """Two keyframes' matches as sightings (into a, into b): each keyframe the only one of its side."""
+    identity = np.broadcast_to(np.eye(4), (len(matches.points_a), 4, 4))
+    return (Sim3Sightings(matches.points_b, identity, matches.uv_a, matches.sigma2_a),
+            Sim3Sightings(matches.points_a, identity, matches.uv_b, matches.sigma2_b))
 
 
 @dataclass(frozen=True)
@@ -199,26 +234,47 @@ def ransac_sim3(matches: Sim3Matches, camera: PinholeCamera, rng: np.random.Gene
 # ------------------------------------------------------------------------------------------ refinement
 
 
-def _residuals(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
-    """Reprojection errors both ways, each pixel component divided by its observation's sigma: (4 N,)."""
-    inverse = sim3_inverse(S_a_b)
-    in_a = project_points(camera, transform_points(S_a_b, matches.points_b)) - matches.uv_a
-    in_b = project_points(camera, transform_points(inverse, matches.points_a)) - matches.uv_b
+def _in_seeing_cameras(sightings: Sim3Sightings, S_seer_seen: np.ndarray) -> np.ndarray:
+    """The sighted points in the cameras of the keyframes that saw them: T_view_reference S x, (N, 3)."""
+    mapped = transform_points(S_seer_seen, sightings.points)
+    T = sightings.T_view_reference
+    return np.einsum("nij,nj->ni", T[:, :3, :3], mapped) + T[:, :3, 3]
+
+
+def _sighting_errors(sightings: Sim3Sightings, camera: PinholeCamera,
+                     S_seer_seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per sighting, the squared reprojection error in units of its sigma2, and whether it is in front."""
+    seen = _in_seeing_cameras(sightings, S_seer_seen)
+    errors = np.sum((project_points(camera, seen) - sightings.uv) ** 2, axis=1) / sightings.sigma2
+    return errors, seen[:, 2] > 0.0
+
+
+def _sighting_inliers(sightings: Sim3Sightings, camera: PinholeCamera, S_seer_seen: np.ndarray,
+                      chi2: float) -> np.ndarray:
+    errors, in_front = _sighting_errors(sightings, camera, S_seer_seen)
+    return in_front & (errors < chi2)  # NaN errors (a point on the camera's plane) compare False
+
+
+def _residuals(into_a: Sim3Sightings, into_b: Sim3Sightings, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
+    """Reprojection errors of b's points in a's side and of a's points in b's side, each pixel component divided by
+    its observation's sigma: (2 (N_a + N_b),)."""
+    in_a = project_points(camera, _in_seeing_cameras(into_a, S_a_b)) - into_a.uv
+    in_b = project_points(camera, _in_seeing_cameras(into_b, sim3_inverse(S_a_b))) - into_b.uv
     return np.concatenate([
-        (in_a / np.sqrt(matches.sigma2_a)[:, None]).ravel(),
-        (in_b / np.sqrt(matches.sigma2_b)[:, None]).ravel(),
+        (in_a / np.sqrt(into_a.sigma2)[:, None]).ravel(),
+        (in_b / np.sqrt(into_b.sigma2)[:, None]).ravel(),
     ])
 
 
-def _optimize(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, chi2: float,
+def _optimize(into_a: Sim3Sightings, into_b: Sim3Sightings, camera: PinholeCamera, S_a_b: np.ndarray, chi2: float,
               iterations: int) -> np.ndarray:
     """S_a_b after ``iterations`` (at most, >= 1) of trust-region least squares over a left update exp(delta) S_a_b,
     with Huber's kernel at sqrt(chi2): an error beyond the inlier bound counts linearly, as with ORB-SLAM2's
     deltaHuber = sqrt(th2) (scipy applies it to each pixel component, g2o to each observation's 2-vector)."""
-    if len(matches.points_a) == 0:
+    if len(into_a.points) + len(into_b.points) == 0:
         return S_a_b
     solution = least_squares(
-        lambda delta: _residuals(matches, camera, sim3_exp(delta) @ S_a_b),
+        lambda delta: _residuals(into_a, into_b, camera, sim3_exp(delta) @ S_a_b),
         np.zeros(SIM3_DOF), loss="huber", f_scale=np.sqrt(chi2), max_nfev=iterations, method="trf",
     )
     return sim3_exp(solution.x) @ S_a_b
@@ -229,19 +285,43 @@ def _left_update_jacobians(points: np.ndarray) -> np.ndarray:
     return np.concatenate([pose_jacobians(points), points[:, :, None]], axis=2)
 
 
-def sim3_information(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
-    """J^T J (7, 7) of the two-way reprojection residuals ``refine_sim3`` minimizes (each in units of its
+def sim3_information_on_sightings(into_a: Sim3Sightings, into_b: Sim3Sightings, camera: PinholeCamera,
+                                  S_a_b: np.ndarray) -> np.ndarray:
+    """J^T J (7, 7) of the reprojection residuals ``refine_sim3_on_sightings`` minimizes (each in units of its
     observation's sigma), for the left update exp(delta) S_a_b: the Gauss-Newton information of S_a_b in its
-    tangent (v, w, sigma) with the map points held. Large along what the matches pin down, small along what they
-    leave free (a narrow view of a far scene trades rotation against translation, and says so here)."""
-    mapped_b = transform_points(S_a_b, matches.points_b)  # b's points in a: exp(delta) moves them
-    in_a = projection_jacobians(camera, mapped_b) @ _left_update_jacobians(mapped_b)
-    inverse = sim3_inverse(S_a_b)
-    mapped_a = transform_points(inverse, matches.points_a)  # a's points in b: S^-1 exp(-delta) moves them
-    in_b = -projection_jacobians(camera, mapped_a) @ inverse[:3, :3] @ _left_update_jacobians(matches.points_a)
-    J = np.concatenate([in_a / np.sqrt(matches.sigma2_a)[:, None, None],
-                        in_b / np.sqrt(matches.sigma2_b)[:, None, None]]).reshape(-1, SIM3_DOF)
+    tangent (v, w, sigma) with the map points and the keyframes within each side held. Large along what the
+    sightings pin down, small along what they leave free (a narrow view of a far scene trades rotation against
+    translation, and says so here)."""
+    mapped_b = transform_points(S_a_b, into_a.points)  # b's points in a: exp(delta) moves them
+    in_a = (projection_jacobians(camera, _in_seeing_cameras(into_a, S_a_b)) @ into_a.T_view_reference[:, :3, :3]
+            @ _left_update_jacobians(mapped_b))
+    inverse = sim3_inverse(S_a_b)  # a's points in b: S^-1 exp(-delta) moves them
+    in_b = (-projection_jacobians(camera, _in_seeing_cameras(into_b, inverse)) @ into_b.T_view_reference[:, :3, :3]
+            @ inverse[:3, :3] @ _left_update_jacobians(into_b.points))
+    J = np.concatenate([in_a / np.sqrt(into_a.sigma2)[:, None, None],
+                        in_b / np.sqrt(into_b.sigma2)[:, None, None]]).reshape(-1, SIM3_DOF)
     return J.T @ J
+
+
+def sim3_information(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray) -> np.ndarray:
+    """``sim3_information_on_sightings`` of two keyframes' matches: J^T J of their two-way reprojection residuals."""
+    return sim3_information_on_sightings(*sightings_of(matches), camera, S_a_b)
+
+
+def refine_sim3_on_sightings(into_a: Sim3Sightings, into_b: Sim3Sightings, camera: PinholeCamera,
+                             S_a_b: np.ndarray, *, chi2: float,
+                             iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S_a_b refined on both sides' sightings of the other's points, map points and each side's keyframes held
+    (``refine_sim3`` on neighbourhoods): a first round on the sightings in front of their cameras, a second on those
+    within ``chi2`` after it. Returns (S_a_b, inliers into a, inliers into b), at ``chi2`` of the result."""
+    first = _optimize(into_a.subset(_sighting_errors(into_a, camera, S_a_b)[1]),
+                      into_b.subset(_sighting_errors(into_b, camera, sim3_inverse(S_a_b))[1]),
+                      camera, S_a_b, chi2, iterations)
+    second = _optimize(into_a.subset(_sighting_inliers(into_a, camera, first, chi2)),
+                       into_b.subset(_sighting_inliers(into_b, camera, sim3_inverse(first), chi2)),
+                       camera, first, chi2, iterations)
+    return (second, _sighting_inliers(into_a, camera, second, chi2),
+            _sighting_inliers(into_b, camera, sim3_inverse(second), chi2))
 
 
 def refine_sim3(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, *, chi2: float,
@@ -252,8 +332,8 @@ def refine_sim3(matches: Sim3Matches, camera: PinholeCamera, S_a_b: np.ndarray, 
     # A point behind a camera has a projection that means nothing, and one near its plane a huge error: leave
     # them out from the start rather than let the kernel fight them.
     _, _, in_front = _two_way_errors(matches, camera, S_a_b)
-    first = _optimize(matches.subset(in_front), camera, S_a_b, chi2, iterations)
+    first = _optimize(*sightings_of(matches.subset(in_front)), camera, S_a_b, chi2, iterations)
     errors_a, errors_b, in_front = _two_way_errors(matches, camera, first)
     kept = in_front & (errors_a <= chi2) & (errors_b <= chi2)
-    second = _optimize(matches.subset(kept), camera, first, chi2, iterations)
+    second = _optimize(*sightings_of(matches.subset(kept)), camera, first, chi2, iterations)
     return Sim3Fit(second, reprojection_inliers(matches, camera, second, chi2), 0)
