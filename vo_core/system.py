@@ -398,8 +398,7 @@ class Odometry:
         self._own_the_maps()
         if not self._feature_map_empty:
             self.features.reset(keep)
-            if keep and self.config.features.loop_closing.enabled:
-                self.segment += 1
+            self.segment += keep  # with loop closure the feature map's segment ids follow (FeatureMap.begin_segment)
         self.feature_keyframes_given.clear()
         self.posed = []
 
