@@ -516,6 +516,8 @@ def _incidents(metrics: dict[str, Any]) -> list[str]:
         (events[EventKind.REINITIALIZATION.value], "reinitialization", "reinitializations"),
         (events[EventKind.REINITIALIZATION_ABANDONED.value], "reinitialization abandoned (the old map came back)",
          "reinitializations abandoned (the old map came back)"),
+        (events[EventKind.LOOP_CLOSED.value], "loop closed", "loops closed"),
+        (events[EventKind.MAPS_MERGED.value], "map merged into the final one", "maps merged into the final one"),
     ]
     return [_counted(count, one, many) for count, one, many in counts if count]
 

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 import vo_core.system
-from app.cli import main
+from app.cli import _incidents, main
 from app.pipeline import run_sequence
 from app.player import Player
 from app.progress import ProgressBar
@@ -386,6 +386,12 @@ def test_the_summary_names_what_befell_the_run(dataset, tmp_path, scripted, caps
     assert ("1 unreadable frame skipped, 2 frames dropped, 1 tracking failure, 2 divergences, "
             "2 recoveries (1 succeeded, 1 failed), 1 reinitialization") in stdout
     assert "ATE rmse" in stdout and f"results in {tmp_path / 'r'}" in stdout
+
+
+def test_the_summary_counts_the_loops_closed_and_the_maps_merged():
+    metrics = {"events": {"loop_closed": 2, "maps_merged": 1, "loop_candidate": 40}, "skipped_frames": 0,
+               "dropped_frames": 0, "late_frames": 0, "jumps": []}
+    assert _incidents(metrics) == ["2 loops closed", "1 map merged into the final one"]
 
 
 @pytest.mark.parametrize("display", [None, ":0"])
