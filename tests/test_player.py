@@ -148,7 +148,10 @@ def test_realtime_hands_out_the_newest_frame_and_drops_the_frames_missed_meanwhi
     assert len(seen) + sum(event.details["count"] for event in late) == 30
     assert 30 / 4 <= len(seen) <= 30 / 2.5 and seen == sorted(seen) and seen[0] == 0
     assert sequence.reads == seen  # frames dropped are never read
-    assert elapsed < 1.5 + 4 / RATE_HZ  # the length of the sequence, plus the last frame's tracking
+    # The camera's own time (1.5 s) against a player that waited for the tracker (30 frames x 0.15 s = 4.5 s): the
+    # bound halfway between tells them apart on a loaded machine too (1.5 s plus a frame's tracking failed at 1.71 s).
+    camera_s, waiting_s = 30 / RATE_HZ, 30 * 3 / RATE_HZ
+    assert elapsed < (camera_s + waiting_s) / 2
 
 
 def test_realtime_with_a_fast_tracker_drops_nothing_and_keeps_the_frame_rate():
