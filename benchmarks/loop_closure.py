@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from app.experiments.two_loop import estimated_trajectory
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
@@ -22,7 +23,7 @@ from vo_core.geometry.lie import so3_geodesic_angle
 from vo_core.synthetic import make_sequence
 from vo_core.synthetic.faults import looping
 from vo_core.system import Odometry
-from vo_core.trajectory import Trajectory, loop_corrected
+from vo_core.trajectory import Trajectory
 
 WIDTH, HEIGHT = 320, 240
 
@@ -40,12 +41,9 @@ def run(played, camera, loop_closure: bool) -> tuple[np.ndarray, np.ndarray, lis
     odometry = Odometry(load_config(overrides=[f"features.loop_closing.enabled={str(loop_closure).lower()}"]), camera)
     results = [odometry.track(frame) for frame in played]
     odometry.close()
-    posed = [r for r in results if r.T_world_cam is not None]
-    times, poses = np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed])
+    estimate = estimated_trajectory(results)
     loops = [e for r in results for e in r.events if e.kind is EventKind.LOOP_CLOSED]
-    for loop in loops:
-        poses = loop_corrected(loop.details, times, poses)
-    return times, poses, loops
+    return estimate.timestamps, estimate.poses, loops
 
 
 def main() -> None:

@@ -53,6 +53,11 @@ class EventKind(str, Enum):
     FRAMES_JUMPED = "frames_jumped"  # the player went on from another frame, back or ahead (scripted or live)
 
 
+# The events whose details move poses given earlier (vo_core.trajectory.loop_corrected): every sink that keeps poses
+# applies them, in the order they come.
+POSE_CORRECTIONS = (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED)
+
+
 @dataclass(frozen=True)
 class Event:
     """One thing that happened at one frame; ``details`` holds JSON-serializable values."""

@@ -43,7 +43,7 @@ from app.experiments.common import (
 from app.pipeline import track
 from vo_core.errors import InputError
 from vo_core.eval import Drift, EvalConfig, evaluate, ground_truth_gap_end, loop_drifts
-from vo_core.events import EventKind, FrameResult
+from vo_core.events import POSE_CORRECTIONS, FrameResult
 from vo_core.trajectory import Trajectory, loop_corrected, write_trajectory
 
 NAME = "two-loop"
@@ -121,7 +121,7 @@ def estimated_trajectory(results: list[FrameResult]) -> Trajectory:
     posed = [result for result in results if result.T_world_cam is not None]
     times = np.array([result.timestamp for result in posed])
     poses = np.array([result.T_world_cam for result in posed]) if posed else np.zeros((0, 4, 4))
-    for event in (e for result in results for e in result.events if e.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED)):
+    for event in (e for result in results for e in result.events if e.kind in POSE_CORRECTIONS):
         poses = loop_corrected(event.details, times, poses)
     return Trajectory(times, poses)
 

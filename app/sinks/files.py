@@ -17,6 +17,7 @@ truth of the run (groundtruth.tum) and the maps (map_direct.ply, map_features.pl
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
@@ -26,7 +27,7 @@ import numpy as np
 
 from app.sinks.scene import FEATURE_POINT_COLOR, inverse_depth_colors
 from vo_core.config import Config, dump_config
-from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.events import POSE_CORRECTIONS, Event, EventKind, FrameResult, MapSnapshot
 from vo_core.trajectory import Trajectory, loop_corrected, tum_line, write_trajectory
 
 TRAJECTORY_FILE = "trajectory.tum"
@@ -58,14 +59,14 @@ class FilesSink:
         self._trajectory: PoseLines | None = None
         self._keyframes: PoseLines | None = None
         self._retracted: set[float] = set()  # timestamps whose poses the odometry took back
-        self._loops: list[dict[str, Any]] = []  # the LOOP_CLOSED events' details, in order: they move the poses
+        self._corrections: list[dict[str, Any]] = []  # POSE_CORRECTIONS events' details, in order: they move poses
 
     def begin(self, config: Config) -> None:
         """Create the folder, start the line files afresh (each pass over the sequence) and write config.yaml."""
         self._close_files()
         self._timestamps.clear()
         self._retracted.clear()
-        self._loops.clear()
+        self._corrections.clear()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
         self._files = {name: open(self.out_dir / name, "w", buffering=1) for name in (FRAMES_FILE, EVENTS_FILE)}
@@ -96,15 +97,15 @@ class FilesSink:
         elif event.kind is EventKind.INITIALIZATION_REJECTED:
             first = self._timestamps.get(event.details.get("first_frame"))
             self._retract([*event.details.get("retracted", []), *([] if first is None else [first])])
-        elif event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):
-            self._loops.append(event.details)
+        elif event.kind in POSE_CORRECTIONS:
+            self._corrections.append(event.details)
             if event.kind is EventKind.MAPS_MERGED:  # the header says which maps the trajectory joins
                 start, end = event.details["segments"][0]
                 self._trajectory.notes.append(
                     f"the map of {start:.9f}-{end:.9f} s merged into the final map at frame {event.frame_index} "
                     f"(scale {event.details['scale']}): one frame and scale")
-            self._trajectory.correct(lambda times, poses: loop_corrected(event.details, times, poses))
-            self._keyframes.correct(lambda times, poses: loop_corrected(event.details, times, poses))
+            for lines in (self._trajectory, self._keyframes):
+                lines.correct(functools.partial(loop_corrected, event.details))
 
     def _pose_first_keyframe(self, details: dict[str, Any]) -> None:
         """An initializer poses its first frame, as a keyframe, only when it succeeds, frames later: that frame's
@@ -159,7 +160,7 @@ class FilesSink:
             return
         times = np.array([timestamp for timestamp, _ in dated])
         poses = np.array([keyframe_poses[i] for _, i in dated])
-        for details in self._loops:
+        for details in self._corrections:
             poses = loop_corrected(details, times, poses)
         self._keyframes.replace(dict(zip(times.tolist(), poses)))
 

@@ -78,7 +78,7 @@ from app.sinks.scene import (
     kind_style,
     match_colors,
 )
-from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.events import POSE_CORRECTIONS, Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.trajectory import Trajectory
 
@@ -227,7 +227,7 @@ class RerunSink:
         style = event_style(event)
         self.recording.log(EVENT_LOG, rr.TextLog(event_text(event), level=style.level, color=style.color))
         self._markers.add(event)
-        if event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):
+        if event.kind in POSE_CORRECTIONS:
             self._show_loop(event.details)
 
     def _show_loop(self, loop: dict) -> None:

@@ -57,7 +57,7 @@ from app.sinks.scene import (
     match_colors,
     resized,
 )
-from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
+from vo_core.events import POSE_CORRECTIONS, Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.trajectory import Trajectory
 
@@ -255,7 +255,7 @@ class ViserView:
             if event.kind is EventKind.FRAMES_DROPPED:
                 state.dropped += int(event.details.get("count", 0))
             state.jumps += event.kind is EventKind.FRAMES_JUMPED
-            if event.kind in (EventKind.LOOP_CLOSED, EventKind.MAPS_MERGED):  # the path before it moves, and the loop is drawn
+            if event.kind in POSE_CORRECTIONS:  # the path before it moves, and the loop is drawn
                 state.path.correct(event.details)
                 state.loops.append(np.asarray(event.details["positions"], dtype=float))
             if event_style(event).marked:
