@@ -234,8 +234,9 @@ class LoopCloser:
                                                  feature_map.points_of([loop.frame_index]), features, points,
                                                  with_points_only=True)
         features, points = np.concatenate([features, more_features]), np.concatenate([points, more_points])
-        fit = refine_sim3(self._matches(feature_map, keyframe, features, loop, points), self.camera, fit.S_a_b,
-                          chi2=config.refine_chi2, iterations=config.refine_iterations)
+        matches = self._matches(feature_map, keyframe, features, loop, points)
+        fit = refine_sim3(matches, self.camera, fit.S_a_b, chi2=config.refine_chi2,
+                          iterations=config.refine_iterations)
         candidate.inliers = fit.num_inliers
         if fit.num_inliers < config.min_refined_inliers:
             candidate.why = f"{fit.num_inliers} inliers after refinement, fewer than {config.min_refined_inliers}"
@@ -243,8 +244,7 @@ class LoopCloser:
         S_keyframe_loop, information = self._refined_on_neighbourhoods(feature_map, graph, keyframe, candidate,
                                                                        fit.S_a_b)
         candidate.scale = sim3_scale(S_keyframe_loop)
-        kept = reprojection_inliers(self._matches(feature_map, keyframe, features, loop, points), self.camera,
-                                    S_keyframe_loop, config.refine_chi2)
+        kept = reprojection_inliers(matches, self.camera, S_keyframe_loop, config.refine_chi2)
         features, points = features[kept], points[kept]
         # The loop's whole neighbourhood, seen from the pose the Sim(3) gives the keyframe, must be found there.
         neighbourhood = [loop.frame_index, *graph.covisible_keyframes(loop.frame_index, 1)]
@@ -337,21 +337,16 @@ class LoopCloser:
 
     def _matches(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, features: np.ndarray,
                  loop: FeatureKeyframe, points: np.ndarray) -> Sim3Matches:
-        """The keyframe's points (its features' own) and the loop keyframe's matched points, each in its camera's
-        frame, with where each keyframe saw them."""
+        """The keyframe's points (its features' own) and the loop keyframe's matched points (each one it observes),
+        each in its camera's frame, with where each keyframe saw them."""
         positions = feature_map.points.position
-        observed_in_loop = {int(p): f for f, p in enumerate(loop.point_ids) if p >= 0}
-        loop_features = np.array([observed_in_loop.get(int(p), -1) for p in points], np.int64)
-        # A point of the loop's neighbourhood the loop keyframe does not observe: where the loop keyframe would see it.
-        points_b = transform_points(se3_inverse(loop.T_world_cam), positions[points])
-        uv_b = self.camera.project(points_b)
-        level_b = np.zeros(len(points), np.int64)
-        seen = loop_features >= 0
-        uv_b[seen], level_b[seen] = loop.features.uv[loop_features[seen]], loop.features.level[loop_features[seen]]
+        loop_features = _observing_features(loop, points)
         return Sim3Matches(
             points_a=transform_points(se3_inverse(keyframe.T_world_cam), positions[keyframe.point_ids[features]]),
-            points_b=points_b, uv_a=keyframe.features.uv[features], uv_b=uv_b,
-            sigma2_a=self.sigma2[keyframe.features.level[features]], sigma2_b=self.sigma2[level_b])
+            points_b=transform_points(se3_inverse(loop.T_world_cam), positions[points]),
+            uv_a=keyframe.features.uv[features], uv_b=loop.features.uv[loop_features],
+            sigma2_a=self.sigma2[keyframe.features.level[features]],
+            sigma2_b=self.sigma2[loop.features.level[loop_features]])
 
     def _found(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, loop_frame: int, S_keyframe_loop: np.ndarray,
                point_ids: np.ndarray, matched_features: np.ndarray, matched_points: np.ndarray,
@@ -383,10 +378,10 @@ class LoopCloser:
         disagree by more than their informations allow, and one of them is wrong."""
         loop_frame = candidate.frame_index
         frames = [k.frame_index for k in feature_map.active_keyframes()]  # in order of creation
-        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        row = {frame_index: i for i, frame_index in enumerate(frames)}  # each keyframe's node
         before = np.array([feature_map.keyframes[f].T_world_cam for f in frames])
-        edges = self._essential_graph(feature_map, frames, before, graph) + self._loop_edges(
-            frames, before, graph, keyframe.frame_index, loop_frame, verified)
+        edges = self._essential_graph(feature_map, row, before, graph) + self._loop_edges(
+            row, before, graph, keyframe.frame_index, loop_frame, verified)
         held = np.array([f in window for f in frames])
         result = optimize_pose_graph(before, edges, held, iterations=self.config.pose_graph_iterations)
         degrees_of_freedom = SIM3_DOF * (len(edges) - int(np.count_nonzero(~held)))
@@ -397,7 +392,7 @@ class LoopCloser:
                              f"chi-square bound {bound:.0f} of its {degrees_of_freedom} degrees of freedom")
             return None
         corrections = result.S_world_nodes @ np.array([se3_inverse(T) for T in before])
-        self._move_points(feature_map, frames, corrections)
+        self._move_points(feature_map, row, corrections)
         for frame_index, S_world_cam in zip(frames, result.S_world_nodes):
             feature_map.keyframes[frame_index].T_world_cam = _rigid(S_world_cam)
         fused = self._fuse(feature_map, keyframe, verified)
@@ -419,19 +414,19 @@ class LoopCloser:
                 other.T_world_cam, other.segment = _rigid(S_active_old @ other.T_world_cam), feature_map.segment
         points = feature_map.points
         moved = np.flatnonzero(points.alive & (points.segment == segment))
-        points.position[moved] = transform_points(S_active_old, points.position[moved])
-        points.reference_distance[moved] *= sim3_scale(S_active_old)
+        _move(points, moved, S_active_old)
         points.segment[moved] = feature_map.segment
         feature_map.update_normals(moved)
         fused = self._fuse(feature_map, keyframe, verified)
         return MapMerge(keyframe.frame_index, merged_frame, segment, S_active_old, fused,
                         np.array([keyframe.centre, merged.centre]))
 
-    def _essential_graph(self, feature_map: FeatureMap, frames: list[int], poses: np.ndarray,
+    def _essential_graph(self, feature_map: FeatureMap, row: dict[int, int], poses: np.ndarray,
                          graph: Covisibility) -> list[PoseGraphEdge]:
         """Consecutive keyframes (the odometry) and strongly covisible pairs, each at its present relative pose,
-        as sure of it as their shared points make it (``_shared_information``)."""
-        row = {frame_index: i for i, frame_index in enumerate(frames)}
+        as sure of it as their shared points make it (``_shared_information``); ``row``: each keyframe's node, in
+        order of creation."""
+        frames = list(row)
         pairs = {(i, i + 1) for i in range(len(frames) - 1)}
         for i, frame_index in enumerate(frames):
             for other in graph.covisible_keyframes(frame_index, self.config.essential_min_weight):
@@ -457,8 +452,8 @@ class LoopCloser:
         inliers = reprojection_inliers(matches, self.camera, S_a_b, self.config.refine_chi2)
         return np.eye(SIM3_DOF) + sim3_information(matches.subset(inliers), self.camera, S_a_b)
 
-    def _loop_edges(self, frames: list[int], poses: np.ndarray, graph: Covisibility, keyframe: int, loop_frame: int,
-                    verified: _Verified) -> list[PoseGraphEdge]:
+    def _loop_edges(self, row: dict[int, int], poses: np.ndarray, graph: Covisibility, keyframe: int,
+                    loop_frame: int, verified: _Verified) -> list[PoseGraphEdge]:
         """The loop joins both neighbourhoods, not only its two keyframes (ORB-SLAM2's LoopConnections): an edge
         between each keyframe near the keyframe and each near the loop keyframe, at their relative pose once the
         loop's side is moved rigidly onto the keyframe's by the Sim(3). With one edge, the stiffness of the many
@@ -469,7 +464,6 @@ class LoopCloser:
         observed on both sides, so by that same count they enter every pair across the loop. Its well-determined
         directions then pull hard, and the rotation a narrow view trades against translation pulls no harder than
         the odometry that disagrees with it (the circuit's 240-frame seed-0 second loop, 1.8 deg off)."""
-        row = {frame_index: i for i, frame_index in enumerate(frames)}
         loop_onto_keyframe = poses[row[keyframe]] @ verified.S_keyframe_loop @ se3_inverse(poses[row[loop_frame]])
         sides = self._sides(graph, keyframe, loop_frame, row)
         edges = []
@@ -482,22 +476,18 @@ class LoopCloser:
         return edges
 
     @staticmethod
-    def _move_points(feature_map: FeatureMap, frames: list[int], corrections: np.ndarray) -> None:
-        """Each point moves with the oldest keyframe that observes it (the one whose view placed it first), its
-        reference distance scaled with it."""
-        table = feature_map.observations(frames)
+    def _move_points(feature_map: FeatureMap, row: dict[int, int], corrections: np.ndarray) -> None:
+        """Each point moves with the oldest keyframe that observes it (the one whose view placed it first); ``row``:
+        each keyframe's correction."""
+        table = feature_map.observations(list(row))
         if len(table.point) == 0:
             return
-        row = {frame_index: i for i, frame_index in enumerate(frames)}
         observer = np.array([row[k] for k in table.keyframe.tolist()], np.int64)
-        oldest = np.full(len(feature_map.points), len(frames), np.int64)
+        oldest = np.full(len(feature_map.points), len(row), np.int64)
         np.minimum.at(oldest, table.point, observer)
-        moved = np.flatnonzero(oldest < len(frames))
+        moved = np.flatnonzero(oldest < len(row))
         for i in np.unique(oldest[moved]):
-            mine = moved[oldest[moved] == i]
-            points = feature_map.points
-            points.position[mine] = transform_points(corrections[i], points.position[mine])
-            points.reference_distance[mine] *= sim3_scale(corrections[i])
+            _move(feature_map.points, moved[oldest[moved] == i], corrections[i])
         feature_map.update_normals(moved)
 
     @staticmethod
@@ -526,6 +516,21 @@ def _loop_information(verified: _Verified, T_i_keyframe: np.ndarray, S_i_j: np.n
     to_edge_inverse = np.linalg.inv(sim3_adjoint(sim3_inverse(S_i_j) @ T_i_keyframe))
     carried = to_edge_inverse.T @ verified.information @ to_edge_inverse
     return 0.5 * (carried + carried.T) + np.eye(SIM3_DOF)
+
+
+def _observing_features(keyframe: FeatureKeyframe, point_ids: np.ndarray) -> np.ndarray:
+    """The feature of ``keyframe`` that observes each of ``point_ids`` (each one it observes; of two features on one
+    point, the later)."""
+    observed = keyframe.observed()
+    order = np.argsort(keyframe.point_ids[observed], kind="stable")
+    sorted_ids = keyframe.point_ids[observed][order]
+    return observed[order][np.searchsorted(sorted_ids, point_ids, side="right") - 1]
+
+
+def _move(points, point_ids: np.ndarray, S: np.ndarray) -> None:
+    """Points moved by a similarity (world -> world), their reference distances (the scale prediction) with it."""
+    points.position[point_ids] = transform_points(S, points.position[point_ids])
+    points.reference_distance[point_ids] *= sim3_scale(S)
 
 
 def _rigid(S: np.ndarray) -> np.ndarray:
