@@ -148,22 +148,13 @@ def _closed_form_sim3(matches: Sim3Matches) -> np.ndarray | None:
 # ------------------------------------------------------------------------------------------ errors
 
 
-def _normalized_errors(camera: PinholeCamera, points: np.ndarray, uv: np.ndarray, sigma2: np.ndarray,
-                       T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per match, the squared reprojection error of T @ point against uv in units of sigma2, and whether the
-    mapped point is in front of the camera (behind it, the projection means nothing)."""
-    mapped = transform_points(T, points)
-    residual = project_points(camera, mapped) - uv
-    errors = np.sum(residual**2, axis=1) / sigma2
-    return errors, mapped[:, 2] > 0.0
-
-
 def _two_way_errors(matches: Sim3Matches, camera: PinholeCamera,
                     S_a_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Normalized squared errors of b's points in a and of a's points in b, and where both lie in front."""
-    errors_a, front_a = _normalized_errors(camera, matches.points_b, matches.uv_a, matches.sigma2_a, S_a_b)
-    errors_b, front_b = _normalized_errors(camera, matches.points_a, matches.uv_b, matches.sigma2_b,
-                                           sim3_inverse(S_a_b))
+    """Normalized squared errors of b's points in a and of a's points in b (``_sighting_errors``), and where both
+    lie in front of their camera (behind it, the projection means nothing)."""
+    into_a, into_b = sightings_of(matches)
+    errors_a, front_a = _sighting_errors(into_a, camera, S_a_b)
+    errors_b, front_b = _sighting_errors(into_b, camera, sim3_inverse(S_a_b))
     return errors_a, errors_b, front_a & front_b
 
 
