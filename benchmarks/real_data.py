@@ -5,11 +5,11 @@
 
 A row per folder and stride, a column group per method: ATE (median over seeds, and its range), frames posed
 (median) of the frames played, the first frame with a pose (median), the failures the run reported (tracking
-failures, divergences, rejected starts: their sum, median over seeds), recoveries, reinitializations, and silent
-failures (summed over seeds): a stretch at another scale than its map's with nothing reported there
-(vo_core.eval.silent), or a run whose ATE is over 5x the best method's on that folder and stride (medians) that
-reported no failure at all. DSO's and ORB-SLAM2's figures at stride 1 are those of ../shared/data/PEERS.md and
-../shared/data/extra/README.md.
+failures, divergences, rejected starts, keyframes the feature map overruled: their sum, median over seeds),
+recoveries, reinitializations, and silent failures (summed over seeds): a stretch at another scale than its map's with
+nothing reported there (vo_core.eval.silent), or a run whose ATE is over 5x the best method's on that folder and stride
+(medians) that reported no failure at all. DSO's and ORB-SLAM2's figures at stride 1 are those of
+../shared/data/PEERS.md and ../shared/data/extra/README.md.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from vo_core.eval.silent import SilentConfig, scale_segments  # noqa: E402
 from vo_core.trajectory import read_trajectory  # noqa: E402
 
-FAILURES = ("tracking_failed", "divergence_detected", "initialization_rejected")
+FAILURES = ("tracking_failed", "divergence_detected", "initialization_rejected", "keyframe_overruled")
 REPORTED = (*FAILURES, "tracking_unverified", "recovery_failed", "recovery_succeeded", "direct_restarted",
             "feature_tracking", "reinitialization", "scale_jump")  # what warns a user that a stretch may be off
 NEW_MAP = ("initialization_succeeded", "reinitialization")  # a new scale begins

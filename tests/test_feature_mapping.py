@@ -7,6 +7,7 @@ import pytest
 
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import NO_POINT, FeatureMap
+from vo_core.features.feature_odometry import FeatureOdometry
 from vo_core.features.mapping import FeatureMapper, seen_under_parallax
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.lie import se3_inverse, transform_points
@@ -271,3 +272,29 @@ def test_no_feature_point_is_farther_than_a_hundred_times_the_maps_median_distan
     points = feature_map.points.position[feature_map.points.alive]
     distance = np.linalg.norm(points - np.median(points, axis=0), axis=1)
     assert distance.max() < 100 * np.median(distance)
+
+
+def test_the_feature_map_witnesses_a_new_keyframes_direct_pose():
+    """FeatureOdometry.check_keyframe: the feature map's own pose for a new keyframe, searched around its direct pose
+    before it joins the map. At the true pose the direct pose explains nearly all of its matches; where the direct
+    map's scale collapsed (the keyframe where the last one was: no step at all), it explains under the 80 % that
+    FDMO's check overrules below (fdmo/decide.judge_keyframe), on a conclusive share of the points in view, and the
+    feature map's pose is the true one."""
+    odometry = FeatureOdometry(FeatureConfig(), CAMERA)
+    keyframes = [SEQUENCE[index] for index in range(0, 45, KEYFRAME_STEP)]
+    for position, frame in enumerate(keyframes[:-1]):
+        window = {f.index: f.T_world_cam for f in keyframes[max(0, position - 6):position + 1]}
+        odometry.add_keyframe(frame.index, frame.timestamp, frame.image, frame.T_world_cam, median_depth(frame), window)
+    new, last = keyframes[-1], keyframes[-2]
+
+    def check(T_world_cam: np.ndarray):
+        return odometry.check_keyframe(new.index, new.timestamp, new.image, T_world_cam, median_depth(new))
+
+    right = check(new.T_world_cam)
+    collapsed_pose = new.T_world_cam.copy()
+    collapsed_pose[:3, 3] = last.T_world_cam[:3, 3]
+    collapsed = check(collapsed_pose)
+    step = np.linalg.norm(new.T_world_cam[:3, 3] - last.T_world_cam[:3, 3])
+    assert right.explained > 0.95 and right.found_fraction >= 0.1
+    assert collapsed.explained < 0.8 and collapsed.found_fraction >= 0.1
+    assert np.linalg.norm(collapsed.T_world_cam[:3, 3] - new.T_world_cam[:3, 3]) < 0.2 * step

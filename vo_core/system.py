@@ -47,7 +47,7 @@ from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking,
 from vo_core.features.config import FeatureConfig
 from vo_core.features.loop_closing import LoopReport
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
-from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide
+from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide, judge_keyframe
 from vo_core.fdmo.evidence import Evidence, gather, gather_recovered
 from vo_core.front_ends import IMPLEMENTED_METHODS, make_front_end  # noqa: F401 (app reads IMPLEMENTED_METHODS here)
 from vo_core.geometry.camera import PinholeCamera
@@ -121,6 +121,7 @@ class Odometry:
         self.map_segments: list[int] = []
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
+        self.overruled: str | None = None  # why the feature map overruled the last keyframe (judge_keyframe)
         self.lost_frames = 0  # frames in a row without a pose
         self.lost_since: int | None = None  # the first of them (its index in the sequence)
         # The current map's last poses (timestamp, T_world_cam): the motion model, and how well it predicted them.
@@ -281,6 +282,8 @@ class Odometry:
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 2: track directly and judge; a trusted frame is accepted, any other is decided on the feature map's
         evidence (``_recover``: gather, decide, carry out), or by DSO's rules without a feature half."""
+        if self.overruled is not None and self._go_on_from_features(frame, result):
+            return
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
             if self._stands_beside_mapping(frame, tracking, judgement, result):
@@ -296,6 +299,25 @@ class Odometry:
             self._without_recovery(frame, tracking, judgement, result)
         else:
             self._recover(frame, tracking, judgement, result)
+
+    def _go_on_from_features(self, frame: DirectFrame, result: FrameResult) -> bool:
+        """After a keyframe the feature map overruled (``_add_feature_keyframes``), the frame is not tracked against
+        that window where the feature map recovers it: it goes on from the recovered pose as after feature tracking
+        (the direct map restarts there from the feature depths in view, or feature tracking takes the next frames).
+        Returns whether it did; where the recovery fails, the window goes on, reported."""
+        self._own_the_maps()
+        reason, self.overruled = self.overruled, None
+        reference = self.features.newest_keyframe  # an overruled direct keyframe did not join the feature map
+        outcome = self.features.recover(frame.frame.image, reference, self._predicted_pose(frame))
+        result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
+        _emit(result, EventKind.RECOVERY_TRIED, {"candidates": outcome.candidates, "reason": reason,
+                                                 "reference_keyframe": reference})
+        if not outcome.succeeded:
+            _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
+            return False
+        _emit(result, EventKind.RECOVERY_SUCCEEDED, outcome.details())
+        self._continue_from(frame, outcome, None, result)
+        return True
 
     @property
     def _live_mapping(self) -> bool:
@@ -401,6 +423,7 @@ class Odometry:
             self.segment += keep  # with loop closure the feature map's segment ids follow (FeatureMap.begin_segment)
         self.feature_keyframes_given.clear()
         self.posed = []
+        self.overruled = None
 
     @property
     def _feature_map_empty(self) -> bool:
@@ -598,11 +621,12 @@ class Odometry:
     # ------------------------------------------------------------------------------------ FDMO Fig. 4
 
     def _describe_ahead(self, frame: DirectFrame, tracking: DirectTracking) -> None:
-        """Synchronously, a frame that becomes a direct keyframe has its ORB features extracted on a thread of the
-        feature half while the direct half maps it, for the feature keyframe that follows (with mapping threads the
-        feature half maps in a process of its own, beside the direct mapper)."""
+        """Synchronously, a frame that becomes a direct keyframe has its ORB features extracted, and its tracked pose
+        checked against the feature map, on a thread of the feature half while the direct half maps it, for the
+        feature keyframe that follows (with mapping threads the feature half maps in a process of its own, beside the
+        direct mapper)."""
         if self.mapper is None and self.features is not None and self.direct.wants_keyframe(frame, tracking):
-            self.features.describe_ahead(frame.index, frame.frame.image)
+            self.features.describe_ahead(frame.index, frame.timestamp, frame.frame.image, tracking.T_world_cam)
 
     def _grow_feature_map(self, keyframe: Keyframe | None, result: FrameResult) -> None:
         if self.features is not None and (keyframe is not None or result.is_keyframe):
@@ -624,7 +648,9 @@ class Odometry:
         """The direct keyframes the feature map has not been given yet, and the window's poses, read now, where the
         direct map is not changing: with mapping threads the feature map grows from them beside the direct map."""
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
-        new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth)
+        probation = self.direct.on_probation
+        new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth, probation,
+                                   k.made_at)
                for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
         if not self.feature_keyframes_given and new:
             self._start_segment(new[0].timestamp)
@@ -633,13 +659,27 @@ class Odometry:
 
     def _add_feature_keyframes(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
                                result: FrameResult, initialization=None) -> None:
+        """The feature map grows at each new direct keyframe it does not overrule (fdmo/decide.judge_keyframe). One it
+        overrules does not join it, nor do the keyframes after it: their poses, and the points they would make, are
+        the drifted direct map's, and would pull the feature map with it; the next frame goes on from the feature map
+        (``_go_on_from_features``)."""
         for keyframe in new:
+            start = time.perf_counter()
+            check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
+                                                 keyframe.made_at, keyframe.median_depth)
+            checked = {} if check is None else {"check": check.details()}
+            self.overruled = judge_keyframe(check, keyframe.start_on_probation, self.config)
+            if self.overruled is not None:
+                _emit(result, EventKind.KEYFRAME_OVERRULED,
+                      {"keyframe": keyframe.frame_index, "reason": self.overruled, **checked})
+                return
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
                 report.tracked_points = self._add_initial_tracks(initialization, window_poses)
-            result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + report.ms
-            _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, report.as_details())
+            result.timings_ms["feature_mapping"] = (result.timings_ms.get("feature_mapping", 0.0)
+                                                    + _ms_since(start))
+            _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, {**report.as_details(), **checked})
             for culled in report.culled_keyframes:
                 _emit(result, EventKind.FEATURE_KEYFRAME_CULLED, {"keyframe": culled})
             if report.loop is not None:
@@ -717,6 +757,8 @@ class _NewFeatureKeyframe:
     image: np.ndarray
     T_world_cam: np.ndarray
     median_depth: float
+    start_on_probation: bool  # the direct map's start was still on probation (start_check.py)
+    made_at: np.ndarray  # the pose the direct keyframe was made at (Keyframe.made_at): the one the feature map checks
 
 
 def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:

@@ -78,6 +78,7 @@ EVENT_STYLES: dict[EventKind, EventStyle] = {
     EventKind.REINITIALIZATION_ABANDONED: EventStyle("INFO", (120, 220, 120)),
     EventKind.KEYFRAME_ADDED: _ROUTINE,
     EventKind.FEATURE_KEYFRAME_ADDED: _ROUTINE,
+    EventKind.KEYFRAME_OVERRULED: EventStyle("WARN", (255, 100, 40)),  # the direct map drifted from the feature map
     EventKind.FEATURE_KEYFRAME_CULLED: _ROUTINE,
     EventKind.KEYFRAME_MARGINALIZED: _ROUTINE,
     EventKind.LOOP_CANDIDATE: EventStyle("DEBUG", (200, 190, 120), marked=False),  # most are refused, as they should
@@ -119,7 +120,8 @@ class PlotLane:
 
 
 PLOT_LANES = (
-    PlotLane("divergence", (EventKind.DIVERGENCE_DETECTED, EventKind.TRACKING_FAILED), 0.4),
+    PlotLane("divergence", (EventKind.DIVERGENCE_DETECTED, EventKind.TRACKING_FAILED, EventKind.KEYFRAME_OVERRULED),
+             0.4),
     PlotLane("recovery", (EventKind.RECOVERY_SUCCEEDED,), 0.3),
     PlotLane("recovery_failed", (EventKind.RECOVERY_FAILED, EventKind.REINITIALIZATION), 0.2),
     PlotLane("drop_or_jump", (EventKind.FRAMES_DROPPED, EventKind.FRAMES_JUMPED), 0.1),

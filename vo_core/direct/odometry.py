@@ -92,6 +92,12 @@ class Keyframe:
     # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.
     reference_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     reference_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # The pose the keyframe was made at (tracking's, a start's or a restart's), before window optimizations moved it:
+    # the one the feature map checks, beside the first of them (system.py, fdmo/decide.judge_keyframe).
+    made_at: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.made_at = self.T_world_cam.copy()
 
     @property
     def camera(self) -> PinholeCamera:

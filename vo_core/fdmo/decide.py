@@ -38,6 +38,7 @@ from enum import Enum
 
 from vo_core.direct.divergence import Verdict
 from vo_core.fdmo.evidence import Evidence, Motion, RecoveredEvidence
+from vo_core.features.mapping import KeyframeCheck
 
 
 class Outcome(Enum):
@@ -123,6 +124,27 @@ def _suspect(evidence: Evidence, config) -> Decision | str:
     # still holds the far points the feature map lost.
     return Decision(Outcome.ACCEPT_UNVERIFIED, reason, {
         **details, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
+
+
+def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, config) -> str | None:
+    """Why the feature map overrules a new direct keyframe, None where it stands. The evidence is a suspect frame's
+    (``_suspect``): the feature map's pose for the keyframe, searched around the direct one (KeyframeCheck). It
+    overrules the direct pose where it would be taken as a recovery (``features.recovery.min_inliers``, FDMO's 30),
+    found a conclusive share of the map points in view (``fdmo.overrule_share``), and most of its matches contradict
+    the direct pose (it explains under ``fdmo.keyframe_agreement`` of them; a suspect frame, already in doubt, is
+    overruled under ``fdmo.agreement``). Checked at every keyframe, it catches the direct map drifting from the feature
+    map's points where no frame's tracking looks suspect (a window whose scale collapses over a fast sweep, TUM
+    fr1/desk), before the feature map holds only points made in the drifted map. A start on probation is not judged
+    so: the feature map then holds only that start's own points, and the start check judges it with a witness of its
+    own (direct/start_check.py; the drone clip at half its frame rate: the start's keyframe overruled 3 optimizations
+    after the hand-over, 10 % explained, restarted from 86 feature depths, 0.060 -> 0.478 m)."""
+    fdmo = config.fdmo
+    if start_on_probation or check is None or check.inliers < config.features.recovery.min_inliers:
+        return None
+    if check.explained >= fdmo.keyframe_agreement or check.found_fraction < fdmo.overrule_share:
+        return None
+    return (f"the feature map disagrees with the direct keyframe (the direct pose explains {check.explained:.0%} of "
+            f"its {check.inliers} matches, {check.found_fraction:.0%} of the map points in view)")
 
 
 def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str | None:

@@ -8,12 +8,16 @@ copies the window's optimized poses over, FDMO 4.3).
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
 import numpy as np
 
 from vo_core.features.config import FeatureConfig
-from vo_core.features.feature_map import FeatureMap, project_points
+from vo_core.features.feature_map import FeatureKeyframe, FeatureMap, project_points
 from vo_core.features.loop_closing import LoopCloser
-from vo_core.features.mapping import FeatureMapper, MappingReport
+from vo_core.features.mapping import FeatureMapper, KeyframeCheck, MappingReport
 from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.camera import PinholeCamera
@@ -30,6 +34,9 @@ class FeatureOdometry:
         self.mapper = FeatureMapper(config, camera, vocabulary)
         self.relocalizer = Relocalizer(config, camera, vocabulary)
         self.loop_closer = LoopCloser(config.loop_closing, config.orb, camera) if config.loop_closing.enabled else None
+        self.checked: FeatureKeyframe | None = None  # the keyframe check_keyframe described, for add_keyframe
+        self.ahead: _Ahead | None = None  # a keyframe being described and checked beside the direct half's mapping
+        self._ahead_pool: ThreadPoolExecutor | None = None
 
     @property
     def empty(self) -> bool:
@@ -47,6 +54,7 @@ class FeatureOdometry:
         """A map at a new scale starts over (the direct map initialized again from scratch). With loop closing, a map
         to ``keep`` stays as an older segment that a place seen again merges with the new one; one not to keep (a
         start found wrong) goes."""
+        self._finish_ahead()
         if self.loop_closer is None:
             self.map = FeatureMap()
             return
@@ -56,20 +64,67 @@ class FeatureOdometry:
             self.map.drop_segment()
         self.loop_closer.reset(self.map.next_keyframe_id)
 
+    def check_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
+                       scene_depth: float) -> KeyframeCheck | None:
+        """The feature map's own pose for a new direct keyframe at ``T_world_cam``, before it joins the map: the local
+        map of the newest keyframe searched around that pose and the pose refined on what is found (ORB-SLAM2's
+        TrackWithMotionModel, on the features the keyframe is described by anyway); None where the active map has no
+        keyframe yet. Taken from ``describe_ahead`` where it ran for this keyframe on this map; the keyframe described
+        is the one ``add_keyframe`` maps next."""
+        ahead = self._finish_ahead()
+        if (ahead is not None and ahead.frame_index == frame_index and ahead.image is image
+                and ahead.map_keyframes == self.map.next_keyframe_id and np.array_equal(ahead.T_world_cam, T_world_cam)):
+            self.checked, check = ahead.result.result()
+            return check
+        self.checked, check = self._described_and_checked(frame_index, timestamp, image, T_world_cam, scene_depth)
+        return check
+
+    def _finish_ahead(self) -> _Ahead | None:
+        """The work ``describe_ahead`` started, finished (it reads the feature map: nothing changes the map meanwhile),
+        and handed over once."""
+        ahead, self.ahead = self.ahead, None
+        if ahead is not None:
+            ahead.result.result()
+        return ahead
+
+    def _described_and_checked(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
+                               scene_depth: float) -> tuple[FeatureKeyframe, KeyframeCheck | None]:
+        keyframe = self.mapper.make_keyframe(self.map.next_keyframe_id, frame_index, timestamp, image, T_world_cam,
+                                             scene_depth)
+        newest = self.map.newest()
+        if newest is None or newest.segment != self.map.segment:
+            return keyframe, None
+        frame = FrameFeatures(keyframe.features, keyframe.bow, keyframe.nodes, 0.0)
+        pose = self.relocalizer.track_from(self.map, frame, T_world_cam, newest.frame_index).pose
+        return keyframe, KeyframeCheck(pose.T_world_cam, pose.num_inliers, pose.found_fraction,
+                                       self.relocalizer.explained(self.map, pose, T_world_cam, frame))
+
     def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
                      scene_depth: float, window_poses: dict[int, np.ndarray]) -> MappingReport:
         """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses. With loop
         closing, the keyframe then looks for a loop (loop_closing.py), the window held where a loop moves the map."""
+        start = time.perf_counter()
+        self._finish_ahead()
         self.map.sync_poses(window_poses)
-        report = self.mapper.add_keyframe(self.map, frame_index, timestamp, image, T_world_cam, scene_depth,
-                                          set(window_poses))
+        keyframe, self.checked = self.checked, None
+        if keyframe is None or keyframe.frame_index != frame_index:
+            keyframe = self.mapper.make_keyframe(self.map.next_keyframe_id, frame_index, timestamp, image,
+                                                 T_world_cam, scene_depth)
+        keyframe.T_world_cam, keyframe.scene_depth = T_world_cam.copy(), scene_depth
+        report = self.mapper.map_keyframe(self.map, keyframe, set(window_poses), start)
         if self.loop_closer is not None and frame_index in self.map.keyframes:
             report.loop = self.loop_closer.run(self.map, self.map.keyframes[frame_index], set(window_poses))
         return report
 
-    def describe_ahead(self, frame_index: int, image: np.ndarray) -> None:
-        """The image of a frame the direct half is making a keyframe, described while it does (FeatureMapper)."""
+    def describe_ahead(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray) -> None:
+        """A frame the direct half is making a keyframe at ``T_world_cam``: described and checked (``check_keyframe``)
+        on a thread beside the direct half's mapping of it, which changes neither the feature map nor that pose."""
         self.mapper.describe_ahead(frame_index, image)
+        if self._ahead_pool is None:
+            self._ahead_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-keyframe-check")
+        T_world_cam = np.array(T_world_cam, float)
+        result = self._ahead_pool.submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam, 0.0)
+        self.ahead = _Ahead(frame_index, image, T_world_cam, self.map.next_keyframe_id, result)
 
     def add_initial_tracks(self, first: int, second: int, uv_first: np.ndarray, uv_second: np.ndarray,
                            points_world: np.ndarray) -> int:
@@ -113,5 +168,20 @@ class FeatureOdometry:
         return {k.frame_index: k.T_world_cam for k in self.map.active_keyframes()}
 
     def close(self) -> None:
-        """The mapper's describing thread ends (``FeatureProcess`` ends its process)."""
+        """The describing and checking threads end (``FeatureProcess`` ends its process)."""
         self.mapper.close()
+        if self._ahead_pool is not None:
+            self._ahead_pool.shutdown()
+            self._ahead_pool, self.ahead = None, None
+
+
+@dataclass(frozen=True)
+class _Ahead:
+    """A keyframe's description and check started by ``describe_ahead``: valid for that frame's image and pose while
+    the feature map has the keyframes it had then."""
+
+    frame_index: int
+    image: np.ndarray
+    T_world_cam: np.ndarray
+    map_keyframes: int  # FeatureMap.next_keyframe_id when it started
+    result: Future  # (FeatureKeyframe, KeyframeCheck | None)

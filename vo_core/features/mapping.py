@@ -38,6 +38,21 @@ if TYPE_CHECKING:
     from vo_core.features.loop_closing import LoopReport
 
 
+@dataclass(frozen=True)
+class KeyframeCheck:
+    """The feature map's witness of a new direct keyframe's pose (FeatureOdometry.check_keyframe), the evidence
+    fdmo/decide.judge_keyframe reads."""
+
+    T_world_cam: np.ndarray  # the feature map's pose for the keyframe
+    inliers: int
+    found_fraction: float  # inliers per local map point in view
+    explained: float  # the share of those inliers the direct pose explains (Relocalizer.explained)
+
+    def details(self) -> dict:
+        return {"inliers": self.inliers, "found_fraction": round(self.found_fraction, 3),
+                "explained": round(self.explained, 3)}
+
+
 @dataclass
 class MappingReport:
     """What one feature keyframe did to the map (the FEATURE_KEYFRAME_ADDED event's details)."""
@@ -91,10 +106,16 @@ class FeatureMapper:
         """``scene_depth`` is the median depth of the direct points seen by the keyframe (what FDMO 4.4's
         baseline / depth rule divides by); ``direct_window`` the frame indices of the direct window."""
         start = time.perf_counter()
-        report = MappingReport(frame_index)
         keyframe = self.make_keyframe(
             feature_map.next_keyframe_id, frame_index, timestamp, image, T_world_cam, scene_depth
         )
+        return self.map_keyframe(feature_map, keyframe, direct_window, start)
+
+    def map_keyframe(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, direct_window: set[int],
+                     start: float | None = None) -> MappingReport:
+        """``add_keyframe`` for a keyframe already made (described), from choosing the local keyframes on."""
+        start = time.perf_counter() if start is None else start
+        report = MappingReport(keyframe.frame_index)
         report.features = len(keyframe.features)
         local = self.local_keyframes(feature_map)
         feature_map.add_keyframe(keyframe)

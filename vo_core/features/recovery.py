@@ -142,7 +142,7 @@ class Relocalizer:
         frame = self.extract(image)
         outcome = self._recover(feature_map, frame, last_keyframe)
         if not outcome.succeeded and T_world_estimate is not None and last_keyframe in feature_map.keyframes:
-            around = self._track_from(feature_map, frame, T_world_estimate, last_keyframe, stage=ESTIMATE)
+            around = self.track_from(feature_map, frame, T_world_estimate, last_keyframe, stage=ESTIMATE)
             if around.succeeded:
                 around.candidates = outcome.candidates
                 outcome = around
@@ -230,12 +230,14 @@ class Relocalizer:
         motion model's guess (ORB-SLAM2 TrackWithMotionModel's wide window), then in the 5x5 window."""
         start = time.perf_counter()
         frame = self.extract(image)
-        outcome = self._track_from(feature_map, frame, T_world_guess, around_keyframe, stage=TRACKING)
+        outcome = self.track_from(feature_map, frame, T_world_guess, around_keyframe, stage=TRACKING)
         outcome.features, outcome.ms = frame, (time.perf_counter() - start) * 1000.0
         return outcome
 
-    def _track_from(self, feature_map: FeatureMap, frame: FrameFeatures, T_world_guess: np.ndarray,
-                    around_keyframe: int, stage: str) -> RecoveryOutcome:
+    def track_from(self, feature_map: FeatureMap, frame: FrameFeatures, T_world_guess: np.ndarray,
+                   around_keyframe: int, stage: str = TRACKING) -> RecoveryOutcome:
+        """The local map of ``around_keyframe`` searched around ``T_world_guess`` and the pose refined on what is
+        found (the frame's features extracted already)."""
         recovery = self.config.recovery
         local_map = self._local_map(feature_map, around_keyframe)
         guess = PoseFromMap(T_world_guess, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, bool))
