@@ -660,18 +660,21 @@ class Odometry:
     def _add_feature_keyframes(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
                                result: FrameResult, initialization=None) -> None:
         """The feature map grows at each new direct keyframe it does not overrule (fdmo/decide.judge_keyframe). One it
-        overrules does not join it, nor do the keyframes after it: their poses, and the points they would make, are
-        the drifted direct map's, and would pull the feature map with it; the next frame goes on from the feature map
-        (``_go_on_from_features``)."""
+        overrules does not join it, nor does any keyframe after it until a frame went on from the feature map
+        (``_go_on_from_features``: at the next frame, or live, at the first after the feature mapper's check): their
+        poses, and the points they would make, are the drifted direct map's, and would pull the feature map with it."""
         for keyframe in new:
+            if self.overruled is not None:
+                return
             start = time.perf_counter()
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                  keyframe.made_at, keyframe.median_depth)
             checked = {} if check is None else {"check": check.details()}
-            self.overruled = judge_keyframe(check, keyframe.start_on_probation, self.config)
-            if self.overruled is not None:
+            overruled = judge_keyframe(check, keyframe.start_on_probation, self.config)
+            if overruled is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,
-                      {"keyframe": keyframe.frame_index, "reason": self.overruled, **checked})
+                      {"keyframe": keyframe.frame_index, "reason": overruled, **checked})
+                self.overruled = overruled
                 return
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
