@@ -663,9 +663,9 @@ class Odometry:
         overrules does not join it, nor does any keyframe after it until a frame went on from the feature map
         (``_go_on_from_features``: at the next frame, or live, at the first after the feature mapper's check): their
         poses, and the points they would make, are the drifted direct map's, and would pull the feature map with it."""
+        if self.overruled is not None:
+            return
         for keyframe in new:
-            if self.overruled is not None:
-                return
             start = time.perf_counter()
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                  keyframe.made_at, keyframe.median_depth)

@@ -72,8 +72,7 @@ class FeatureOdometry:
         keyframe yet. Taken from ``describe_ahead`` where it ran for this keyframe on this map; the keyframe described
         is the one ``add_keyframe`` maps next."""
         ahead = self._finish_ahead()
-        if (ahead is not None and ahead.frame_index == frame_index and ahead.image is image
-                and ahead.map_keyframes == self.map.next_keyframe_id and np.array_equal(ahead.T_world_cam, T_world_cam)):
+        if ahead is not None and ahead.serves(frame_index, image, T_world_cam, self.map.next_keyframe_id):
             self.checked, check = ahead.result.result()
             return check
         self.checked, check = self._described_and_checked(frame_index, timestamp, image, T_world_cam, scene_depth)
@@ -117,11 +116,13 @@ class FeatureOdometry:
         return report
 
     def describe_ahead(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray) -> None:
-        """A frame the direct half is making a keyframe at ``T_world_cam``: described and checked (``check_keyframe``)
-        on a thread beside the direct half's mapping of it, which changes neither the feature map nor that pose."""
-        self.mapper.describe_ahead(frame_index, image)
+        """A frame the direct half is making a keyframe at ``T_world_cam``: described (its ORB features and words) and
+        checked (``check_keyframe``) on a thread beside the direct half's mapping of it, which changes neither the
+        feature map nor that pose, and whose kernels release the interpreter's lock as OpenCV does. Whatever describes
+        or changes the map next waits for it (``_finish_ahead``): the mapper's extractor is used by one thread at a
+        time."""
         if self._ahead_pool is None:
-            self._ahead_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-keyframe-check")
+            self._ahead_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-keyframe-ahead")
         T_world_cam = np.array(T_world_cam, float)
         result = self._ahead_pool.submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam, 0.0)
         self.ahead = _Ahead(frame_index, image, T_world_cam, self.map.next_keyframe_id, result)
@@ -168,8 +169,7 @@ class FeatureOdometry:
         return {k.frame_index: k.T_world_cam for k in self.map.active_keyframes()}
 
     def close(self) -> None:
-        """The describing and checking threads end (``FeatureProcess`` ends its process)."""
-        self.mapper.close()
+        """The describing and checking thread ends (``FeatureProcess`` ends its process)."""
         if self._ahead_pool is not None:
             self._ahead_pool.shutdown()
             self._ahead_pool, self.ahead = None, None
@@ -185,3 +185,7 @@ class _Ahead:
     T_world_cam: np.ndarray
     map_keyframes: int  # FeatureMap.next_keyframe_id when it started
     result: Future  # (FeatureKeyframe, KeyframeCheck | None)
+
+    def serves(self, frame_index: int, image: np.ndarray, T_world_cam: np.ndarray, map_keyframes: int) -> bool:
+        return (self.frame_index == frame_index and self.image is image and self.map_keyframes == map_keyframes
+                and np.array_equal(self.T_world_cam, T_world_cam))

@@ -18,7 +18,6 @@ Poses are never estimated here: FDMO keeps one pose per keyframe, the direct one
 from __future__ import annotations
 
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -91,11 +90,6 @@ class FeatureMapper:
         self.vocabulary = vocabulary
         self.scales = level_scales(config.orb)
         self.sigma2 = level_sigma2s(config.orb)
-        # A coming keyframe's image described beside the direct half's mapping (describe_ahead), by an extractor of
-        # its own (OpenCV's detectors are not shared between threads) on a thread of its own, made on first use.
-        self._ahead_extractor = OrbExtractor(config.orb)
-        self._ahead_pool: ThreadPoolExecutor | None = None
-        self._ahead: tuple[int, np.ndarray, Future] | None = None  # frame index, image, its description
 
     # ------------------------------------------------------------------------------------ the recipe
 
@@ -134,33 +128,13 @@ class FeatureMapper:
         return report
 
     def make_keyframe(self, keyframe_id, frame_index, timestamp, image, T_world_cam, scene_depth) -> FeatureKeyframe:
-        features, bow, nodes = self._described(frame_index, image)
+        features, bow, nodes = self._described(image)
         return FeatureKeyframe(keyframe_id, frame_index, timestamp, T_world_cam.copy(), features, bow, nodes,
                                scene_depth=scene_depth, image=image)
 
-    def describe_ahead(self, frame_index: int, image: np.ndarray) -> None:
-        """Start describing the image of a frame that is becoming a keyframe (its ORB features and words) on a thread
-        beside the direct half's mapping of it, whose kernels release the interpreter's lock as OpenCV does:
-        ``make_keyframe`` then takes the description instead of extracting on the tracking thread."""
-        if self._ahead_pool is None:
-            self._ahead_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-keyframe-orb")
-        self._ahead = (frame_index, image, self._ahead_pool.submit(self._describe, self._ahead_extractor, image))
-
-    def close(self) -> None:
-        if self._ahead_pool is not None:
-            self._ahead_pool.shutdown()
-            self._ahead_pool, self._ahead = None, None
-
-    def _described(self, frame_index: int, image: np.ndarray) -> tuple[Features, BowVector, np.ndarray]:
-        """The image's features, bag of words and direct-index nodes: those described ahead for this frame's image,
-        else described now (a description ahead for another frame, whose keyframe did not come, is dropped)."""
-        ahead, self._ahead = self._ahead, None
-        if ahead is not None and ahead[0] == frame_index and ahead[1] is image:
-            return ahead[2].result()
-        return self._describe(self.extractor, image)
-
-    def _describe(self, extractor: OrbExtractor, image: np.ndarray) -> tuple[Features, BowVector, np.ndarray]:
-        features = extractor.extract(image)
+    def _described(self, image: np.ndarray) -> tuple[Features, BowVector, np.ndarray]:
+        """The image's features, bag of words and direct-index nodes."""
+        features = self.extractor.extract(image)
         return (features, *self.vocabulary.transform(features.descriptors))
 
     def local_keyframes(self, feature_map: FeatureMap) -> list[FeatureKeyframe]:
