@@ -21,17 +21,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_exp, se3_inverse, transform_points
-from vo_core.geometry.reprojection import (
-    CHI2_2D_95,
-    ORB_SCALE_FACTOR,
-    huber_cost_and_weights,
-    level_information,
-    pose_jacobians,
-    project_points,
-    projection_jacobians,
-)
+from vo_core.geometry.lie import se3_exp_compiled, se3_inverse, transform_points
+from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information, project_points
 
 ROUNDS = 4  # ORB-SLAM2 PoseOptimization: 4 optimizations, inliers and outliers classified after each
 ITERATIONS = 10  # ORB-SLAM2 PoseOptimization: its[4] = {10, 10, 10, 10}
@@ -56,6 +49,7 @@ class _Matches:
         self.points_world = np.asarray(points_world, float)
         self.uv = np.asarray(uv, float)
         self.information = level_information(level, scale_factor)  # FDMO eq. 6 / ORB-SLAM2 invSigma2
+        self.intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], float)
 
     def residuals(self, T_cam_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(camera-frame points (N, 3), residuals pi(T X) - x (N, 2))."""
@@ -89,7 +83,9 @@ def refine_pose(
     if len(matches.uv) >= MIN_OBSERVATIONS:
         for round_index in range(rounds):
             last = round_index == rounds - 1
-            T_cam_world = _levenberg_marquardt(matches, T_cam_world, inlier, iterations, None if last else huber)
+            T_cam_world = _levenberg_marquardt(
+                matches.intrinsics, matches.points_world[inlier], matches.uv[inlier], matches.information[inlier],
+                T_cam_world, iterations, np.inf if last else huber)
             p, e = matches.residuals(T_cam_world)
             inlier = matches.normalized_errors(p, e) ** 2 <= chi2
             if inlier.sum() < MIN_OBSERVATIONS:
@@ -99,42 +95,25 @@ def refine_pose(
     return PoseRefinement(se3_inverse(T_cam_world), inlier, np.linalg.norm(e, axis=1))
 
 
-def _cost_and_weights(matches: _Matches, p, e, active, huber: float | None) -> tuple[float, np.ndarray]:
-    """The (robust) cost of the active observations and their weights W_l x IRLS weight (N,)."""
-    error = matches.normalized_errors(p, e)[active]
-    if not np.all(np.isfinite(error)):
-        return np.inf, np.zeros(len(e))
-    if huber is None:
-        cost, robust = float(np.sum(error**2)), np.ones(len(error))
-    else:
-        cost, robust = huber_cost_and_weights(error, huber)
-    weights = np.zeros(len(e))
-    weights[active] = matches.information[active] * robust
-    return cost, weights
-
-
-def _levenberg_marquardt(
-    matches: _Matches, T_cam_world: np.ndarray, active: np.ndarray, iterations: int, huber: float | None
-) -> np.ndarray:
-    """Minimize the (robust) weighted reprojection cost of the ``active`` observations over the pose."""
-    p, e = matches.residuals(T_cam_world)
-    cost, weights = _cost_and_weights(matches, p, e, active, huber)
+@kernel
+def _levenberg_marquardt(intrinsics, points_world, uv, information, T_cam_world, iterations, huber):
+    """Minimize the (robust) weighted reprojection cost of the observations over the pose, Huber's kernel at
+    ``huber`` (inf: none). Compiled: 40 steps of numpy on a few hundred points cost a recovery ~10 ms."""
+    p, e, error = _residuals(intrinsics, points_world, uv, information, T_cam_world)
+    cost, weights = _huber(error, information, huber)
     if not np.isfinite(cost):
         return T_cam_world  # a point in use lies behind the guess: nothing sensible to descend
     damping, rejected = LAMBDA_INITIAL, 0
     for _ in range(iterations):
-        J = projection_jacobians(matches.camera, p[active]) @ pose_jacobians(p[active])  # (n, 2, 6)
-        JtW = J.transpose(0, 2, 1) * weights[active][:, None, None]
-        H = np.einsum("nij,njk->ik", JtW, J)
-        g = np.einsum("nij,nj->i", JtW, e[active])
+        H, g = _normal_equations(intrinsics, p, e, weights)
         H_damped = H + damping * np.diag(np.diag(H))
         try:
             delta = -np.linalg.solve(H_damped, g)
-        except np.linalg.LinAlgError:
-            break  # degenerate configuration (e.g. all points on one ray): keep the last pose
-        candidate = se3_exp(delta) @ T_cam_world
-        candidate_p, candidate_e = matches.residuals(candidate)
-        candidate_cost, candidate_weights = _cost_and_weights(matches, candidate_p, candidate_e, active, huber)
+        except Exception:  # noqa: BLE001 (numba catches no narrower class): e.g. all points on one ray
+            break  # degenerate configuration: keep the last pose
+        candidate = se3_exp_compiled(delta) @ T_cam_world
+        candidate_p, candidate_e, candidate_error = _residuals(intrinsics, points_world, uv, information, candidate)
+        candidate_cost, candidate_weights = _huber(candidate_error, information, huber)
         if candidate_cost >= cost:
             damping *= LAMBDA_UP
             rejected += 1
@@ -145,3 +124,58 @@ def _levenberg_marquardt(
         damping *= LAMBDA_DOWN
         rejected = 0
     return T_cam_world
+
+
+@kernel
+def _residuals(intrinsics, points_world, uv, information, T_cam_world):
+    """Camera-frame points (N, 3), residuals pi(T X) - x (N, 2) and normalized errors sqrt(e^T W e) (N,), inf
+    behind the camera."""
+    fx, fy, cx, cy = intrinsics
+    n = len(points_world)
+    p, e, error = np.empty((n, 3)), np.empty((n, 2)), np.empty(n)
+    for i in range(n):
+        for r in range(3):
+            p[i, r] = (T_cam_world[r, 0] * points_world[i, 0] + T_cam_world[r, 1] * points_world[i, 1]
+                       + T_cam_world[r, 2] * points_world[i, 2] + T_cam_world[r, 3])
+        e[i, 0] = fx * p[i, 0] / p[i, 2] + cx - uv[i, 0]
+        e[i, 1] = fy * p[i, 1] / p[i, 2] + cy - uv[i, 1]
+        error[i] = np.sqrt(information[i] * (e[i, 0] ** 2 + e[i, 1] ** 2))
+        if not (p[i, 2] > 0 and np.isfinite(error[i])):
+            error[i] = np.inf
+    return p, e, error
+
+
+@kernel
+def _huber(error, information, k):
+    """Huber's cost sum rho(e) (geometry/reprojection.huber_cost_and_weights; k = inf: squares) and the weights
+    W_l x IRLS weight; an infinite cost where an error is."""
+    cost, weights = 0.0, np.empty(len(error))
+    for i in range(len(error)):
+        if not np.isfinite(error[i]):
+            return np.inf, weights
+        if error[i] <= k:
+            cost += error[i] ** 2
+            weights[i] = information[i]
+        else:
+            cost += 2.0 * k * error[i] - k**2
+            weights[i] = information[i] * k / error[i]
+    return cost, weights
+
+
+@kernel
+def _normal_equations(intrinsics, p, e, weights):
+    """H = sum J^T W J and g = sum J^T W e, J = d pi(exp(delta) p) / d delta (2 x 6): the pinhole's derivative
+    (geometry/reprojection.projection_jacobians) times [I, -[p]x] (pose_jacobians), multiplied out."""
+    fx, fy = intrinsics[0], intrinsics[1]
+    H, g, J = np.zeros((6, 6)), np.zeros(6), np.zeros((2, 6))
+    for i in range(len(p)):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        a0, a2 = fx / z, -fx * x / (z * z)  # du / d(x, y, z) = (a0, 0, a2)
+        b1, b2 = fy / z, -fy * y / (z * z)  # dv / d(x, y, z) = (0, b1, b2)
+        J[0, 0], J[0, 1], J[0, 2], J[0, 3], J[0, 4], J[0, 5] = a0, 0.0, a2, a2 * y, a0 * z - a2 * x, -a0 * y
+        J[1, 0], J[1, 1], J[1, 2], J[1, 3], J[1, 4], J[1, 5] = 0.0, b1, b2, b2 * y - b1 * z, -b2 * x, b1 * x
+        for r in range(6):
+            g[r] += weights[i] * (J[0, r] * e[i, 0] + J[1, r] * e[i, 1])
+            for c in range(6):
+                H[r, c] += weights[i] * (J[0, r] * J[0, c] + J[1, r] * J[1, c])
+    return H, g
