@@ -23,8 +23,8 @@ import numpy as np
 
 from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_exp_compiled, se3_inverse, transform_points
-from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information, project_points
+from vo_core.geometry.lie import se3_exp_compiled, se3_inverse
+from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information
 
 ROUNDS = 4  # ORB-SLAM2 PoseOptimization: 4 optimizations, inliers and outliers classified after each
 ITERATIONS = 10  # ORB-SLAM2 PoseOptimization: its[4] = {10, 10, 10, 10}
@@ -41,27 +41,6 @@ class PoseRefinement(NamedTuple):
     errors_px: np.ndarray  # (N,) reprojection error at the returned pose (level-0 pixels)
 
 
-class _Matches:
-    """Map points, their observed pixels and level weights."""
-
-    def __init__(self, camera: PinholeCamera, points_world, uv, level, scale_factor: float):
-        self.camera = camera
-        self.points_world = np.asarray(points_world, float)
-        self.uv = np.asarray(uv, float)
-        self.information = level_information(level, scale_factor)  # FDMO eq. 6 / ORB-SLAM2 invSigma2
-        self.intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], float)
-
-    def residuals(self, T_cam_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(camera-frame points (N, 3), residuals pi(T X) - x (N, 2))."""
-        p = transform_points(T_cam_world, self.points_world)
-        return p, project_points(self.camera, p) - self.uv
-
-    def normalized_errors(self, p: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """sqrt(e^T W e) (N,): the error in units of its level's sigma; inf behind the camera."""
-        error = np.sqrt(self.information * np.sum(e**2, axis=1))
-        return np.where((p[:, 2] > 0) & np.isfinite(error), error, np.inf)
-
-
 def refine_pose(
     camera: PinholeCamera,
     T_world_cam_guess: np.ndarray,
@@ -76,23 +55,23 @@ def refine_pose(
 ) -> PoseRefinement:
     """The camera pose that best explains the N observations ``uv`` of ``points_world`` (features detected at
     pyramid ``level``), from ``T_world_cam_guess``, and which observations are inliers."""
-    matches = _Matches(camera, points_world, uv, level, scale_factor)
+    points_world, uv = np.asarray(points_world, float), np.asarray(uv, float)
+    information = level_information(level, scale_factor)  # FDMO eq. 6 / ORB-SLAM2 invSigma2
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], float)
     T_cam_world = se3_inverse(np.asarray(T_world_cam_guess, float))
-    inlier = np.ones(len(matches.uv), bool)
+    inlier = np.ones(len(uv), bool)
     huber = float(np.sqrt(chi2))  # ORB-SLAM2 deltaMono = sqrt(5.991)
-    if len(matches.uv) >= MIN_OBSERVATIONS:
+    if len(uv) >= MIN_OBSERVATIONS:
         for round_index in range(rounds):
             last = round_index == rounds - 1
-            T_cam_world = _levenberg_marquardt(
-                matches.intrinsics, matches.points_world[inlier], matches.uv[inlier], matches.information[inlier],
-                T_cam_world, iterations, np.inf if last else huber)
-            p, e = matches.residuals(T_cam_world)
-            inlier = matches.normalized_errors(p, e) ** 2 <= chi2
+            T_cam_world = _levenberg_marquardt(intrinsics, points_world[inlier], uv[inlier], information[inlier],
+                                               T_cam_world, iterations, np.inf if last else huber)
+            _, _, error = _residuals(intrinsics, points_world, uv, information, T_cam_world)
+            inlier = error**2 <= chi2
             if inlier.sum() < MIN_OBSERVATIONS:
                 break
-    p, e = matches.residuals(T_cam_world)
-    inlier = matches.normalized_errors(p, e) ** 2 <= chi2
-    return PoseRefinement(se3_inverse(T_cam_world), inlier, np.linalg.norm(e, axis=1))
+    _, e, error = _residuals(intrinsics, points_world, uv, information, T_cam_world)
+    return PoseRefinement(se3_inverse(T_cam_world), error**2 <= chi2, np.linalg.norm(e, axis=1))
 
 
 @kernel
