@@ -43,7 +43,7 @@ class EventKind(str, Enum):
     LOOP_CANDIDATE = "loop_candidate"  # a place the bag of words recognised, taken or refused and why
     LOOP_CLOSED = "loop_closed"  # a loop corrected the map: each keyframe's correction moves the poses before it
     MAPS_MERGED = "maps_merged"  # an older map (started before a loss) joined the active one: one frame and scale
-    KEYFRAME_OVERRULED = "keyframe_overruled"  # the feature map disagrees with a new direct keyframe's pose
+    KEYFRAME_OVERRULED = "keyframe_overruled"  # a new direct keyframe does not join the feature map (judge_keyframe)
     SCALE_JUMP = "scale_jump"  # the direct map's scale jumped or collapsed at a keyframe
     MAP_POINTS_CULLED = "map_points_culled"
     WINDOW_OPTIMIZED = "window_optimized"

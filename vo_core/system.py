@@ -121,7 +121,9 @@ class Odometry:
         self.map_segments: list[int] = []
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
-        self.overruled: str | None = None  # why the feature map overruled the last keyframe (judge_keyframe)
+        # Why the feature map holds still (judge_keyframe): it overruled a direct keyframe, and takes none until it
+        # agrees with one again, the view leaves it, or a frame goes on from its pose.
+        self.held: str | None = None
         self.lost_frames = 0  # frames in a row without a pose
         self.lost_since: int | None = None  # the first of them (its index in the sequence)
         # The current map's last poses (timestamp, T_world_cam): the motion model, and how well it predicted them.
@@ -282,7 +284,7 @@ class Odometry:
     def _track_direct(self, frame: DirectFrame, result: FrameResult) -> None:
         """Fig. 2: track directly and judge; a trusted frame is accepted, any other is decided on the feature map's
         evidence (``_recover``: gather, decide, carry out), or by DSO's rules without a feature half."""
-        if self.overruled is not None and self._go_on_from_features(frame, result):
+        if self.held is not None and self._go_on_from_features(frame, result):
             return
         tracking, judgement = self._track_and_judge(frame, result)
         if self.mapper is not None and judgement.verdict is not Verdict.TRUSTED:
@@ -301,16 +303,18 @@ class Odometry:
             self._recover(frame, tracking, judgement, result)
 
     def _go_on_from_features(self, frame: DirectFrame, result: FrameResult) -> bool:
-        """After a keyframe the feature map overruled (``_add_feature_keyframes``), the frame is not tracked against
-        that window where the feature map recovers it: it goes on from the recovered pose as after feature tracking
-        (the direct map restarts there from the feature depths in view, or feature tracking takes the next frames).
-        Returns whether it did; where the recovery fails, the window goes on, reported."""
+        """While the feature map holds still (it overruled a direct keyframe, ``_add_feature_keyframes``), a frame is
+        not tracked against that window where the feature map recovers it: it goes on from the recovered pose as after
+        feature tracking (the direct map restarts there from the feature depths in view, or feature tracking takes the
+        next frames). Returns whether it did; where the recovery fails, the window goes on, reported, and the next
+        frame tries again (TUM fr1/desk: a fast sweep blurred the 143 frames after the direct map's scale jumped
+        beyond recognition; the 144th was recovered at a keyframe from before the jump, and the direct map restarted
+        at the scale it had)."""
         self._own_the_maps()
-        reason, self.overruled = self.overruled, None
         reference = self.features.newest_keyframe  # an overruled direct keyframe did not join the feature map
         outcome = self.features.recover(frame.frame.image, reference, self._predicted_pose(frame))
         result.timings_ms["recovery"] = result.timings_ms.get("recovery", 0.0) + outcome.ms
-        _emit(result, EventKind.RECOVERY_TRIED, {"candidates": outcome.candidates, "reason": reason,
+        _emit(result, EventKind.RECOVERY_TRIED, {"candidates": outcome.candidates, "reason": self.held,
                                                  "reference_keyframe": reference})
         if not outcome.succeeded:
             _emit(result, EventKind.RECOVERY_FAILED, outcome.details())
@@ -423,7 +427,7 @@ class Odometry:
             self.segment += keep  # with loop closure the feature map's segment ids follow (FeatureMap.begin_segment)
         self.feature_keyframes_given.clear()
         self.posed = []
-        self.overruled = None
+        self.held = None
 
     @property
     def _feature_map_empty(self) -> bool:
@@ -502,6 +506,7 @@ class Odometry:
         feature map's depths (teddy, 13 frames missed right after the start, live under load: 75 points from the
         start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
         map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
+        self.held = None  # the frame goes on from the feature map's pose: the map follows the direct half again
         retracked = None
         if direct is not None:
             retracked = self.direct.track(frame, outcome.T_world_cam)
@@ -650,7 +655,7 @@ class Odometry:
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
         probation = self.direct.on_probation
         new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth, probation,
-                                   k.made_at)
+                                   k.made_at, k.scale_jumped)
                for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
         if not self.feature_keyframes_given and new:
             self._start_segment(new[0].timestamp)
@@ -659,23 +664,24 @@ class Odometry:
 
     def _add_feature_keyframes(self, new: list[_NewFeatureKeyframe], window_poses: dict[int, np.ndarray],
                                result: FrameResult, initialization=None) -> None:
-        """The feature map grows at each new direct keyframe it does not overrule (fdmo/decide.judge_keyframe). One it
-        overrules does not join it, nor does any keyframe after it until a frame went on from the feature map
-        (``_go_on_from_features``: at the next frame, or live, at the first after the feature mapper's check): their
-        poses, and the points they would make, are the drifted direct map's, and would pull the feature map with it."""
-        if self.overruled is not None:
-            return
+        """The feature map grows at each new direct keyframe it does not overrule (fdmo/decide.judge_keyframe). After
+        one it overrules it holds still (``held``): the poses of the keyframes after it, and the points they would
+        make, are the drifted direct map's, and would pull the feature map with it. Each is checked, and joins where
+        the feature map agrees with it again or no longer sees the view; a frame going on from the feature map's pose
+        ends the hold too (``_continue_from``)."""
         for keyframe in new:
             start = time.perf_counter()
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                  keyframe.made_at, keyframe.median_depth)
             checked = {} if check is None else {"check": check.details()}
-            overruled = judge_keyframe(check, keyframe.start_on_probation, self.config)
-            if overruled is not None:
+            refused = judge_keyframe(check, keyframe.start_on_probation, keyframe.scale_jumped,
+                                     self.held is not None, self.config)
+            if refused is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,
-                      {"keyframe": keyframe.frame_index, "reason": overruled, **checked})
-                self.overruled = overruled
-                return
+                      {"keyframe": keyframe.frame_index, "reason": refused, **checked})
+                self.held = refused
+                continue
+            self.held = None
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
@@ -762,6 +768,7 @@ class _NewFeatureKeyframe:
     median_depth: float
     start_on_probation: bool  # the direct map's start was still on probation (start_check.py)
     made_at: np.ndarray  # the pose the direct keyframe was made at (Keyframe.made_at): the one the feature map checks
+    scale_jumped: bool  # the direct map's scale jumped at it (Keyframe.scale_jumped)
 
 
 def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:

@@ -16,7 +16,8 @@ camera that slows down or only turns leaves the depths as they were. The scale c
 in opposite directions (a map shrunk by 2 has half the speed and twice the inverse depths). A jump is the
 geometric mean of the two changes beyond ``jump_factor``, with the depths moving by at least ``min_depth_factor``.
 After a jump the history starts again, so a collapse that goes on is reported again once there is something to
-compare with.
+compare with. The keyframe a jump is seen at is marked (Keyframe.scale_jumped): FDMO's feature map, at the scale the
+direct map had, does not follow it (fdmo/decide.judge_keyframe).
 """
 
 from __future__ import annotations

@@ -126,25 +126,44 @@ def _suspect(evidence: Evidence, config) -> Decision | str:
         **details, "why": "the feature map does not recognize this view, and does not contradict the direct pose"})
 
 
-def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, config) -> str | None:
-    """Why the feature map overrules a new direct keyframe, None where it stands. The evidence is a suspect frame's
-    (``_suspect``): the feature map's pose for the keyframe, searched around the direct one (KeyframeCheck). It
-    overrules the direct pose where it would be taken as a recovery (``features.recovery.min_inliers``, FDMO's 30),
-    found a conclusive share of the map points in view (``fdmo.overrule_share``), and most of its matches contradict
-    the direct pose (it explains under ``fdmo.keyframe_agreement`` of them; a suspect frame, already in doubt, is
-    overruled under ``fdmo.agreement``). Checked at every keyframe, it catches the direct map drifting from the feature
-    map's points where no frame's tracking looks suspect (a window whose scale collapses over a fast sweep, TUM
-    fr1/desk), before the feature map holds only points made in the drifted map. A start on probation is not judged
-    so: the feature map then holds only that start's own points, and the start check judges it with a witness of its
-    own (direct/start_check.py; the drone clip at half its frame rate: the start's keyframe overruled 3 optimizations
-    after the hand-over, 10 % explained, restarted from 86 feature depths, 0.060 -> 0.478 m)."""
-    fdmo = config.fdmo
-    if start_on_probation or check is None or check.inliers < config.features.recovery.min_inliers:
+def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, scale_jumped: bool, held: bool,
+                   config) -> str | None:
+    """Why a new direct keyframe does not join the feature map, None where it joins. The evidence is a suspect frame's
+    (``_suspect``): the feature map's pose for the keyframe, searched around the direct one (KeyframeCheck). The feature
+    map is the reference the direct map is judged by only where it sees the view: at least a recovery's 30 points in
+    view (``features.recovery.min_inliers``, FDMO's 30).
+
+    - It overrules the direct pose where it would be taken as a recovery (30 inliers), found a conclusive share of the
+      map points in view (``fdmo.overrule_share``), and most of its matches contradict the direct pose (it explains
+      under ``fdmo.keyframe_agreement`` of them). Checked at every keyframe, it catches the direct map drifting from
+      the feature map's points where no frame's tracking looks suspect.
+    - It does not follow a keyframe at which the direct map's scale jumped (``scale_jumped``, the direct half's scale
+      watch, direct/scale_watch.py): the feature map holds the scale the direct map had. TUM fr1/desk: the window's
+      scale collapsed 2x at one keyframe of a fast sweep, then 10-70x over the next 20, while the direct keyframe still
+      explained 53 % of the feature map's matches.
+    - Once it overruled one, it is ``held``: it takes no direct keyframe until it agrees with one again (a recovery's
+      30 inliers, ``keyframe_agreement`` of them explained) or the view has left it (nothing to judge by: the direct
+      map is then all there is), or a frame went on from its pose (system.py). A feature map that followed the next
+      keyframes would hold the wrong map's points, and every later recovery would bring its scale back.
+
+    A start on probation is not judged: the feature map then holds only that start's own points, and the start check
+    judges it with a witness of its own (direct/start_check.py; the drone clip at half its frame rate: the start's
+    keyframe overruled 3 optimizations after the hand-over, 10 % explained, restarted from 86 feature depths, 0.060 ->
+    0.478 m)."""
+    fdmo, recovery = config.fdmo, config.features.recovery
+    if start_on_probation or check is None or check.in_view < recovery.min_inliers:
         return None
-    if check.explained >= fdmo.keyframe_agreement or check.found_fraction < fdmo.overrule_share:
+    recovery_grade = check.inliers >= recovery.min_inliers
+    agrees = recovery_grade and check.explained >= fdmo.keyframe_agreement
+    measured = (f"the direct pose explains {check.explained:.0%} of its {check.inliers} matches, "
+                f"{check.found_fraction:.0%} of the map points in view")
+    if held:
+        return None if agrees else f"the feature map holds still: it does not confirm the direct keyframe ({measured})"
+    if scale_jumped:
+        return f"the direct map's scale jumped at this keyframe ({measured})"
+    if agrees or not recovery_grade or check.found_fraction < fdmo.overrule_share:
         return None
-    return (f"the feature map disagrees with the direct keyframe (the direct pose explains {check.explained:.0%} of "
-            f"its {check.inliers} matches, {check.found_fraction:.0%} of the map points in view)")
+    return f"the feature map disagrees with the direct keyframe ({measured})"
 
 
 def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str | None:

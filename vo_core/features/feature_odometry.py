@@ -96,7 +96,7 @@ class FeatureOdometry:
         frame = FrameFeatures(keyframe.features, keyframe.bow, keyframe.nodes, 0.0)
         pose = self.relocalizer.track_from(self.map, frame, T_world_cam, newest.frame_index).pose
         return keyframe, KeyframeCheck(pose.T_world_cam, pose.num_inliers, pose.found_fraction,
-                                       self.relocalizer.explained(self.map, pose, T_world_cam, frame))
+                                       self.relocalizer.explained(self.map, pose, T_world_cam, frame), pose.in_view)
 
     def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
                      scene_depth: float, window_poses: dict[int, np.ndarray]) -> MappingReport:

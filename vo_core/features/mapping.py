@@ -46,10 +46,11 @@ class KeyframeCheck:
     inliers: int
     found_fraction: float  # inliers per local map point in view
     explained: float  # the share of those inliers the direct pose explains (Relocalizer.explained)
+    in_view: int = 0  # the local map points in view at the direct pose, that the search looked for
 
     def details(self) -> dict:
         return {"inliers": self.inliers, "found_fraction": round(self.found_fraction, 3),
-                "explained": round(self.explained, 3)}
+                "explained": round(self.explained, 3), "in_view": self.in_view}
 
 
 @dataclass
