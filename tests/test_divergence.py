@@ -29,8 +29,14 @@ def tracking(rmse_before=8.0, rmse_end=6.0, saturated_end=0.05, rmse_after=None,
     # 1.26-1.39x the start's, at poses whose RMSE measured alike was 0.91-0.99x it.
     ("the same pose measured alike", tracking(rmse_before=10.0, rmse_end=9.4, saturated_end=0.45,
                                              rmse_after=13.9), Verdict.TRUSTED),
+    # A black frame leaves every residual beyond the cutoff; a right pose 3.15 m on after 20 frames dropped on parking
+    # 54 % of them (0.8 px from where the motion prior put it): neither is trusted, both go to the feature map and the
+    # prior (fdmo/decide.py).
     ("a black frame: both ends saturated", tracking(rmse_before=12.0, rmse_end=12.0, saturated_end=1.0),
-     Verdict.DIVERGED),
+     Verdict.SUSPECT),
+    ("parking, 3.15 m dropped: a right pose leaves 54 % beyond the cutoff",
+     tracking(rmse_before=14.4, rmse_end=13.6, saturated_end=0.54, good_enough=False, intervals_missed=21.0),
+     Verdict.SUSPECT),
     ("no hypothesis converged", tracking(converged=False), Verdict.LOST),
     ("every hypothesis worse than the last frame", tracking(good_enough=False), Verdict.SUSPECT),
     ("frames were missed", tracking(intervals_missed=4.0), Verdict.SUSPECT),
@@ -38,6 +44,11 @@ def tracking(rmse_before=8.0, rmse_end=6.0, saturated_end=0.05, rmse_after=None,
 ])
 def test_the_verdict_of_each_recorded_case(case, evidence, verdict):
     assert judge(evidence, DivergenceConfig()).verdict is verdict, case
+
+
+def test_only_a_pose_that_leaves_most_residuals_beyond_the_cutoff_is_saturated():
+    assert judge(tracking(saturated_end=1.0), DivergenceConfig()).saturated
+    assert not judge(tracking(saturated_end=0.45, good_enough=False), DivergenceConfig()).saturated
 
 
 def test_the_ratio_is_rmse_end_over_rmse_before():

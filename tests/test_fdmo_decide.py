@@ -38,6 +38,9 @@ def gap(intervals: float) -> DirectEvidence:
                           intervals_missed=intervals)
 
 
+SATURATED = DirectEvidence(Verdict.SUSPECT, REASON, saturated=True, good_enough=False, rmse_after=12.0,
+                           last_rmse=6.0)  # the final pose leaves most residuals beyond the cutoff (a black frame)
+SATURATED_AFTER_GAP = dataclasses.replace(SATURATED, jump=True, rmse_after=13.6, last_rmse=5.2, intervals_missed=21.0)
 NOTHING = FeatureEvidence(succeeded=False)  # the feature map has no pose for the frame, and no search contradicts it
 STEADY = 0.01 * 11 ** 0.5  # a car's or a rig's motion prior over 11 intervals (KITTI, parking: 0.01 a frame)
 HANDHELD = 0.27 * 31 ** 0.5  # teddy's over 31
@@ -187,6 +190,26 @@ ROWS = [
                  FeatureEvidence(True, FeaturePose(150, 0.15)),
                  PriorEvidence(STEADY, recovered=Motion(300.0, 500.0, 200.0))),
         Outcome.RECOVER),
+    # A pose that leaves most residuals beyond the cutoff says nothing of itself. Parking, 3.15 m dropped at frame 100:
+    # the first frame after the gap left 54 % beyond it at a right pose, 0.8 px from the prediction, the feature map's
+    # best pose too weak (73 inliers, 4.8 %; diverged, it was lost, and the run ended at a new map, 1.85 m).
+    Row("a saturated pose the motion prior confirms stands unverified (parking 3.15 m: 54 %, 0.8 px off)",
+        Evidence(SATURATED_AFTER_GAP, FeatureEvidence(False, FeaturePose(73, 0.048, 0.0)),
+                 PriorEvidence(STEADY, direct=Motion(207.2, 208.2, 0.8))),
+        Outcome.ACCEPT_UNVERIFIED, details={
+            "explained": 0.0, "predicted_motion_px": 207.2, "direct_motion_px": 208.2, "from_prediction_px": 0.8,
+            "why": "the feature map's pose (73 inliers, 4.8% of the points in view) disagrees but is too weakly "
+                   "supported to overrule the direct one"}),
+    Row("... not where the prior is a handheld camera's, too unpredictable to confirm it",
+        Evidence(SATURATED_AFTER_GAP, NOTHING, PriorEvidence(HANDHELD, direct=Motion(207.2, 208.2, 0.8))),
+        Outcome.LOST, "; neither the feature map nor the motion prior confirms it, and the feature map cannot place "
+                      "the frame"),
+    Row("a black frame: saturated, no gap, no features: not kept, though nothing contradicts it",
+        Evidence(SATURATED, FeatureEvidence(False, feature_deprived=True)), Outcome.LOST,
+        "; neither the feature map nor the motion prior confirms it, and the feature map cannot place the frame"),
+    Row("a saturated pose the feature map's recovery confirms is accepted",
+        Evidence(SATURATED, FeatureEvidence(True, FeaturePose(120, 0.14, 0.97))),
+        Outcome.ACCEPT, details={"explained": 0.97, "agreed": True}),
     Row("diverged, no feature pose: lost",
         Evidence(DirectEvidence(Verdict.DIVERGED, REASON), NOTHING), Outcome.LOST),
     Row("lost (no hypothesis converged) and a recovery: recover",

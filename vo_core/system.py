@@ -572,8 +572,9 @@ class Odometry:
                           result: FrameResult) -> None:
         """--method direct: DSO's behaviour, reported. A lost frame reinitializes at once; a diverged one is
         reported and kept (there is nothing to recover from), and so is one after missed frames or a sudden motion
-        (nothing can check it: teddy with 20-45 frames dropped ends 0.09-0.23 m off, and would say nothing); another
-        suspect one is kept (DSO's retrack threshold: 4 % of teddy's frames, nearly all right)."""
+        (nothing can check it: teddy with 20-45 frames dropped ends 0.09-0.23 m off, and would say nothing) or one
+        that leaves most residuals beyond the cutoff (a black frame); another suspect one is kept (DSO's retrack
+        threshold: 4 % of teddy's frames, nearly all right)."""
         if judgement.verdict is Verdict.LOST:
             self._report_failure(frame, tracking, judgement, result)
             origin = self.direct.last_pose.copy()
@@ -581,7 +582,7 @@ class Odometry:
             self.direct.reinitialize(origin)
             self.direct.initialize(frame, result)
             return
-        if judgement.verdict is Verdict.DIVERGED or judgement.jump:
+        if judgement.verdict is Verdict.DIVERGED or judgement.jump or judgement.saturated:
             _emit(result, EventKind.DIVERGENCE_DETECTED,
                   {**judgement.details(tracking), "recovery": "none (--method direct keeps the pose)"})
         self._accept(frame, tracking, result)

@@ -14,8 +14,10 @@ moved far more than the last frames' did (``sudden_motion_factor`` times their m
 show (a video's dropped frames, FDMO's own frame-drop protocol, a shake). There DSO's guesses can fit the new view
 with a normal RMSE at a wrong pose (teddy, 20 frames dropped and retimed: RMSE 6.35 against 6.0 before, 85 % of the
 translation missing, the image moved 22x the last frames' median), which nothing else notices.
-A result whose final pose leaves most of its residuals beyond the cutoff (a black frame: all of them) explains too
-little of the image to be kept unchecked: it is DIVERGED too, the RMSE ratio being blind there (both ends saturated).
+A result whose final pose leaves most of its residuals beyond the cutoff explains too little of the image to be kept
+unchecked, the RMSE ratio being blind there (both ends saturated): it is SUSPECT, and ``saturated`` says so (fdmo/decide
+keeps it only where the feature map or the motion prior confirms it). A black frame leaves all of them; a right pose
+after a jump can leave more than half too (parking, 3.15 m dropped: 54 %, 0.8 px from where the motion prior put it).
 A result that did not converge at all is LOST (DSO's lost: no hypothesis converged, too few residuals).
 """
 
@@ -61,6 +63,7 @@ class Judgement:
     threshold: float  # 1 + epsilon
     reason: str
     jump: bool = False  # suspect because the camera may have jumped (missed frames, a sudden motion)
+    saturated: bool = False  # suspect because the final pose leaves most of the residuals beyond the cutoff
 
     def details(self, tracking: DirectTracking) -> dict:
         return {
@@ -80,10 +83,11 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
     ratio = tracking.rmse_end / tracking.rmse_before if tracking.rmse_before > 0 else float("inf")
     if ratio > threshold:
         return Judgement(Verdict.DIVERGED, ratio, threshold, f"RMSE after / before {ratio:.2f} > {threshold:.2f}")
-    if tracking.saturated_end > config.max_saturated_share:
-        return Judgement(Verdict.DIVERGED, ratio, threshold, f"the final pose leaves {tracking.saturated_end:.0%} of "
-                         "the residuals beyond the cutoff: the alignment explains less than half of the image")
     reasons, jump = [], False
+    saturated = tracking.saturated_end > config.max_saturated_share
+    if saturated:
+        reasons.append(f"the final pose leaves {tracking.saturated_end:.0%} of the residuals beyond the cutoff: the "
+                       "alignment explains less than half of the image")
     if config.check_when_no_hypothesis_good_enough and not tracking.good_enough:
         reasons.append(f"no motion hypothesis ({tracking.hypotheses_tried} tried) came within the retrack threshold "
                        f"of the last frame's RMSE ({tracking.rmse_after:.2f} against {tracking.last_rmse:.2f})")
@@ -99,7 +103,7 @@ def judge(tracking: DirectTracking, config: DivergenceConfig) -> Judgement:
                        f"median of {tracking.typical_motion_px:.1f} px{unseen}")
         jump = True
     if reasons:
-        return Judgement(Verdict.SUSPECT, ratio, threshold, "; ".join(reasons), jump)
+        return Judgement(Verdict.SUSPECT, ratio, threshold, "; ".join(reasons), jump, saturated)
     return Judgement(Verdict.TRUSTED, ratio, threshold, "")
 
 

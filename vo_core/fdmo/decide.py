@@ -2,7 +2,8 @@
 the system carries them out. ``decide``: what becomes of a frame direct tracking did not trust (Odometry._carry_out);
 ``after_recovery``: how tracking goes back to direct from a recovered pose (Odometry._continue_from).
 
-    verdict suspect (the camera may have jumped, or no motion hypothesis fit as well as the last frame):
+    verdict suspect (the camera may have jumped, no motion hypothesis fit as well as the last frame, or the pose
+    leaves most of the residuals beyond the cutoff):
         the feature map's pose (10+ inliers), compared with the direct one (the share of its inliers it explains):
             agrees (>= fdmo.agreement)                                     ACCEPT (checked) where it is a recovery or
                                                                            the direct pose may stand unconfirmed,
@@ -12,7 +13,7 @@ the system carries them out. ``decide``: what becomes of a frame direct tracking
             disagrees, too weak to overrule                                ACCEPT_UNVERIFIED where the direct pose
                                                                            may stand unconfirmed, else not kept
         no feature pose:
-            the frame is feature-deprived                                  ACCEPT (checked, nothing to check with)
+            the frame is feature-deprived, the pose not saturated          ACCEPT (checked, nothing to check with)
             the search around the direct pose finds under a recovery's
             share of the points it expects there                          not kept
             else                                                           ACCEPT_UNVERIFIED where the direct pose
@@ -24,7 +25,9 @@ the system carries them out. ``decide``: what becomes of a frame direct tracking
 
 "May stand unconfirmed": after missed frames as long as a jump (divergence.sudden_motion_factor intervals), the direct
 pose lies within fdmo.gap_motion_share of the image motion the prior predicts, from the predicted pose; after a sudden
-motion the timestamps do not show, it fits the images as well as the last frame did (DSO's retrack threshold).
+motion the timestamps do not show, it fits the images as well as the last frame did (DSO's retrack threshold). A
+saturated pose (most residuals beyond the cutoff) only after missed frames, within fdmo.gap_motion_share of a reliable
+prior's prediction.
 "Off a reliable prior": the prior's error over the gap is at most fdmo.prior_reliability and the pose lies further than
 fdmo.gap_motion_share of the predicted motion from the predicted pose; a pose the feature map supports (a direct pose
 it confirms, a recovery with a conclusive share) only where, after a gap as long as a jump, it stayed behind (nearer
@@ -110,7 +113,7 @@ def _suspect(evidence: Evidence, config) -> Decision | str:
         return Decision(Outcome.ACCEPT_UNVERIFIED, reason, {**details, "why": (
             f"the feature map's pose ({pose.inliers} inliers, {pose.found_fraction:.1%} of the points in view) "
             "disagrees but is too weakly supported to overrule the direct one")})
-    if features.feature_deprived:
+    if features.feature_deprived and not evidence.direct.saturated:
         return Decision(Outcome.ACCEPT, reason, {"agreed": None})
     around = features.around_estimate
     if around is not None and around.in_view >= recovery.min_inliers \
@@ -177,8 +180,14 @@ def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str
     - after a sudden motion the timestamps do not show, there is no such prediction: the pose must fit the images as
       well as the last frames did (DSO's retrack threshold).
 
-    Other frames pass. ``details`` gets the motion measures either way."""
+    A pose that leaves most of the residuals beyond the cutoff (``saturated``: the alignment explains less than half
+    of the image, and says nothing of itself) stands only where the motion prior confirms it: after missed frames,
+    with a prior reliable enough to judge by (``prior_reliable``), within ``gap_motion_share`` of its prediction
+    (parking, 3.15 m dropped: 54 % saturated, 0.8 px from the prediction, right). A black frame, with no gap, is not
+    kept. Other frames pass. ``details`` gets the motion measures either way."""
     direct = evidence.direct
+    if direct.saturated:
+        return _unless_the_prior_confirms(evidence, config, details)
     if direct.intervals_missed is None:
         if not direct.jump or direct.good_enough:
             return None
@@ -194,6 +203,18 @@ def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str
         return None
     return (f"; over {direct.intervals_missed:.0f} frame intervals the direct pose moved the map {off.found_px:.0f} px "
             f"where the last motion predicts {off.predicted_px:.0f} px ({off.apart_px:.0f} px apart)")
+
+
+def _unless_the_prior_confirms(evidence: Evidence, config, details: dict) -> str | None:
+    """Why a pose may not stand on the motion prior alone (to append to the reason), None where the prior confirms
+    it: after missed frames, a reliable prior predicts it within ``gap_motion_share`` of its image motion."""
+    off = evidence.prior.direct
+    if off is not None:
+        details.update(predicted_motion_px=round(off.predicted_px, 1), direct_motion_px=round(off.found_px, 1),
+                       from_prediction_px=round(off.apart_px, 1))
+    if off is not None and prior_reliable(evidence.prior.error, config) and not _strays(off, config):
+        return None
+    return "; neither the feature map nor the motion prior confirms it"
 
 
 def _recovery(evidence: Evidence, reason: str, config) -> Decision:

@@ -24,6 +24,7 @@ class DirectEvidence:
     verdict: Verdict
     reason: str  # the divergence test's (decide.py appends why a pose is not kept)
     jump: bool = False  # suspect because the camera may have jumped (missed frames, a sudden motion)
+    saturated: bool = False  # the direct pose leaves most of the residuals beyond the cutoff (Judgement.saturated)
     good_enough: bool = True  # a hypothesis came within DSO's retrack threshold of the last frame's RMSE
     rmse_after: float = float("nan")
     last_rmse: float = float("nan")
@@ -146,8 +147,8 @@ def gather(features, camera: PinholeCamera, tracking: DirectTracking, judgement:
         prior_error(posed, tracking.intervals_missed, config.fdmo.min_prior_frames),
         against_prior(camera, tracking, posed, predicted, tracking.T_world_cam) if suspect else None,
         against_prior(camera, tracking, posed, predicted, outcome.T_world_cam) if outcome.succeeded else None)
-    direct = DirectEvidence(judgement.verdict, judgement.reason, judgement.jump, tracking.good_enough,
-                            tracking.rmse_after, tracking.last_rmse, tracking.intervals_missed)
+    direct = DirectEvidence(judgement.verdict, judgement.reason, judgement.jump, judgement.saturated,
+                            tracking.good_enough, tracking.rmse_after, tracking.last_rmse, tracking.intervals_missed)
     return Evidence(direct, feature_evidence, prior)
 
 
