@@ -29,8 +29,8 @@ from vo_core.eval.metrics import evaluate, frame_drop_error  # noqa: E402
 from vo_core.system import Odometry  # noqa: E402
 from vo_core.trajectory import Trajectory  # noqa: E402
 
-REPORTED = ("divergence_detected", "recovery_succeeded", "recovery_failed", "direct_resumed", "direct_restarted",
-            "reinitialization", "reinitialization_abandoned")
+REPORTED = ("divergence_detected", "keyframe_overruled", "recovery_succeeded", "recovery_failed", "direct_resumed",
+            "direct_restarted", "reinitialization", "reinitialization_abandoned")
 
 
 def run(sequence, method: str, at: int, count: int, overrides: list[str]) -> tuple[float, int, int, Counter]:

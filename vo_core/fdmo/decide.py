@@ -196,8 +196,7 @@ def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str
     off = evidence.prior.direct
     if off is None:
         return None
-    details.update(predicted_motion_px=round(off.predicted_px, 1), direct_motion_px=round(off.found_px, 1),
-                   from_prediction_px=round(off.apart_px, 1))
+    _record_motion(off, details)
     shorter_than_a_jump = direct.intervals_missed < config.fdmo.divergence.sudden_motion_factor
     if shorter_than_a_jump or not _strays(off, config):
         return None
@@ -210,11 +209,16 @@ def _unless_the_prior_confirms(evidence: Evidence, config, details: dict) -> str
     it: after missed frames, a reliable prior predicts it within ``gap_motion_share`` of its image motion."""
     off = evidence.prior.direct
     if off is not None:
-        details.update(predicted_motion_px=round(off.predicted_px, 1), direct_motion_px=round(off.found_px, 1),
-                       from_prediction_px=round(off.apart_px, 1))
+        _record_motion(off, details)
     if off is not None and prior_reliable(evidence.prior.error, config) and not _strays(off, config):
         return None
     return "; neither the feature map nor the motion prior confirms it"
+
+
+def _record_motion(off: Motion, details: dict) -> None:
+    """The direct pose's motion against the prior, for the event of a kept pose."""
+    details.update(predicted_motion_px=round(off.predicted_px, 1), direct_motion_px=round(off.found_px, 1),
+                   from_prediction_px=round(off.apart_px, 1))
 
 
 def _recovery(evidence: Evidence, reason: str, config) -> Decision:
