@@ -207,12 +207,12 @@ def _may_not_stand_unconfirmed(evidence: Evidence, config, details: dict) -> str
 def _unless_the_prior_confirms(evidence: Evidence, config, details: dict) -> str | None:
     """Why a pose may not stand on the motion prior alone (to append to the reason), None where the prior confirms
     it: after missed frames, a reliable prior predicts it within ``gap_motion_share`` of its image motion."""
+    unconfirmed = "; neither the feature map nor the motion prior confirms it"
     off = evidence.prior.direct
-    if off is not None:
-        _record_motion(off, details)
-    if off is not None and prior_reliable(evidence.prior.error, config) and not _strays(off, config):
-        return None
-    return "; neither the feature map nor the motion prior confirms it"
+    if off is None:
+        return unconfirmed
+    _record_motion(off, details)
+    return None if prior_reliable(evidence.prior.error, config) and not _strays(off, config) else unconfirmed
 
 
 def _record_motion(off: Motion, details: dict) -> None:
