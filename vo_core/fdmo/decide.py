@@ -138,14 +138,14 @@ def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, scale_
 
     - It overrules the direct pose where it would be taken as a recovery (30 inliers), found a conclusive share of the
       map points in view (``fdmo.overrule_share``), and most of its matches contradict the direct pose (it explains
-      under ``fdmo.keyframe_agreement`` of them). Checked at every keyframe, it catches the direct map drifting from
+      under ``fdmo.agreement`` of them). Checked at every keyframe, it catches the direct map drifting from
       the feature map's points where no frame's tracking looks suspect.
     - It does not follow a keyframe at which the direct map's scale jumped (``scale_jumped``, the direct half's scale
       watch, direct/scale_watch.py): the feature map holds the scale the direct map had. TUM fr1/desk: the window's
       scale collapsed 2x at one keyframe of a fast sweep, then 10-70x over the next 20, while the direct keyframe still
       explained 53 % of the feature map's matches.
     - Once it overruled one, it is ``held``: it takes no direct keyframe until it agrees with one again (a recovery's
-      30 inliers, ``keyframe_agreement`` of them explained) or the view has left it (nothing to judge by: the direct
+      30 inliers, ``agreement`` of them explained) or the view has left it (nothing to judge by: the direct
       map is then all there is), or a frame went on from its pose (system.py). A feature map that followed the next
       keyframes would hold the wrong map's points, and every later recovery would bring its scale back.
 
@@ -157,7 +157,7 @@ def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, scale_
     if start_on_probation or check is None or check.in_view < recovery.min_inliers:
         return None
     recovery_grade = check.inliers >= recovery.min_inliers
-    agrees = recovery_grade and check.explained >= fdmo.keyframe_agreement
+    agrees = recovery_grade and check.explained >= fdmo.agreement
     measured = (f"the direct pose explains {check.explained:.0%} of its {check.inliers} matches, "
                 f"{check.found_fraction:.0%} of the map points in view")
     if held:
