@@ -117,6 +117,30 @@ def test_a_jump_back_to_a_seen_place_is_relocalized(smooth):
     assert evaluate(estimate, truth)["ate"]["rmse"] < 0.02 * path_length(sequence)  # measured: 1.5 %
 
 
+def test_a_map_lost_for_longer_than_the_relocalization_time_is_left_for_a_new_one(smooth):
+    """After 30 frames the view goes black for 8 frames (0.27 s), then comes back at frame 35's place. Allowed 0.2 s of
+    relocalization (ORB-SLAM3 allows 3 s), the odometry begins a new map at the last pose, reported, and poses the
+    frames that follow it, consistent with one another; allowed the default 3 s, the same frames are relocalized in
+    the old map instead."""
+    sequence, _, _ = smooth
+    frames = list(sequence)
+    black = [dataclasses.replace(f, image=np.zeros_like(f.image)) for f in frames[30:38]]
+    played = frames[:30] + black + frames[38:]
+    results, _ = run(played, sequence.camera, ["features.odometry.tracking.new_map_after_lost_s=0.2"])
+    new_maps = [e for r in results for e in r.events if e.kind is EventKind.REINITIALIZATION]
+    assert len(new_maps) == 1 and "a new map" in new_maps[0].details["reason"]
+    begun = new_maps[0].frame_index
+    assert 30 + 6 <= begun < 38  # after 0.2 s of failed relocalizations, on a black frame
+    after = [r for r in results if r.frame_index > begun and r.T_world_cam is not None]
+    assert len(after) >= 8
+    times = np.array([r.timestamp for r in after])
+    estimate = Trajectory(times, np.array([r.T_world_cam for r in after]))
+    truth = Trajectory(times, np.array([sequence.ground_truth.poses[r.frame_index] for r in after]))
+    assert evaluate(estimate, truth)["ate"]["rmse"] < 0.02 * path_length(sequence)
+    waited, _ = run(played, sequence.camera)
+    assert EventKind.REINITIALIZATION not in kinds(waited) and EventKind.RECOVERY_SUCCEEDED in kinds(waited[38:])
+
+
 def _played_again(frame, frames_later: int):
     """The same image shown again ``frames_later`` frames later (a jump back to a seen place, time going on)."""
     return dataclasses.replace(frame, index=frame.index + 1000, timestamp=frame.timestamp + frames_later / 30.0)

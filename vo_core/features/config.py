@@ -150,6 +150,12 @@ class TrackingConfig:
     # more keyframes than it has frames) and the local map needs the stricter inlier count. Counted in frames at
     # the camera's rate, which the odometry reads off the timestamps.
     relocalization_grace_s: float = 1.0
+    # ORB-SLAM3 Tracking::Track, visual only: a map that relocalization has not found the camera in for more than 3 s
+    # of camera time is left, and a new one begun (ORB-SLAM3's Atlas; a map with fewer than 10 keyframes is reset
+    # instead). ORB-SLAM2 waited for the relocalization however long it took: on TUM fr1/desk two seeds of three lost
+    # their map at frame 54 and posed nothing until frame 492. The new map begins where the camera was last posed, at
+    # the old map's scene depth (as ORB-SLAM2's reset of a young map here).
+    new_map_after_lost_s: float = 3.0
     # ORB-SLAM2 takes a keyframe only while its local mapping thread is idle (NeedNewKeyFrame, monocular: c1b, and
     # not accepted while busy); its local mapping, run at camera rate, is busy for a while after each keyframe.
     # Ours runs to the end between two frames, so this stands for that while: no keyframe sooner after the last.

@@ -10,7 +10,8 @@ Per frame:
         frame: ORB-SLAM2's two threads, one after the other. ORB-SLAM2 takes keyframes only while local mapping
         is idle; here, once the camera time its local mapping would have been busy has passed
     lost: no pose; while the map has at most 5 keyframes it starts over (ORB-SLAM2's reset), at the last pose
-        and the old map's scene depth as unit; otherwise every frame tries the global relocalization
+        and the old map's scene depth as unit; otherwise every frame tries the global relocalization, and after 3 s
+        without one a new map starts there in the same way (ORB-SLAM3)
 
 The ORB extractor, the vocabulary, the feature map and its covisibility, the matchers, the pose-only
 optimization, the relocalization and the triangulation are the ones FDMO's feature half uses (vo_core/features/);
@@ -71,6 +72,7 @@ class FeatureOnlyOdometry:
         self.posed: list[tuple[float, np.ndarray]] = []  # the last two poses (timestamp, T_world_cam): velocity
         self.frames_processed = 0
         self.relocalized_at = -np.inf  # frames_processed at the last relocalization
+        self.lost_at: float | None = None  # the timestamp of the frame tracking was lost at
         self.keyframed_at = -np.inf  # timestamp of the last keyframe
         # The camera's frame interval: the shortest seen between two frames (dropped frames only lengthen them).
         self.frame_period = np.inf
@@ -222,22 +224,26 @@ class FeatureOnlyOdometry:
     # ------------------------------------------------------------------------------------ lost, relocalized
 
     def _lost(self, frame, current: TrackedFrame, outcome: TrackingOutcome) -> FrameResult:
-        """No pose. A young map starts over (ORB-SLAM2 resets with at most 5 keyframes), from where the camera
-        was and at its scene depth; an established one waits for the relocalization."""
+        """No pose. A young map starts over (ORB-SLAM2 resets with at most 5 keyframes); an established one waits
+        for the relocalization."""
         self._emit(EventKind.TRACKING_FAILED, reason=outcome.reason, stage=outcome.stage, keyframes=len(self.map))
         if len(self.map) >= self.config.odometry.initialization.reset_when_lost_below_keyframes:
-            self.state = State.LOST
+            self.state, self.lost_at = State.LOST, frame.timestamp
             return self._no_pose(current.features.features.uv)
+        return self._start_over(frame, current.features, reason="the map was lost with few keyframes")
+
+    def _start_over(self, frame, features: FrameFeatures, reason: str) -> FrameResult:
+        """A new map, begun from this frame where the camera was last posed and at the old map's scene depth."""
         newest = self.map.newest()
         self.T_world_origin = self.last.T_world_cam
         self.origin_depth = newest.scene_depth if np.isfinite(newest.scene_depth) else self.origin_depth
-        self._emit(EventKind.REINITIALIZATION, from_frame=frame.index, keyframes=len(self.map))
+        self._emit(EventKind.REINITIALIZATION, from_frame=frame.index, keyframes=len(self.map), reason=reason)
         self.map = FeatureMap()
         self.local_mapper.reset()
         self.initializer.reset()
         self.posed, self.last = [], None
-        self.state = State.NOT_INITIALIZED
-        return self._initialize(frame, current.features)
+        self.state, self.lost_at = State.NOT_INITIALIZED, None
+        return self._initialize(frame, features)
 
     def _relocalize(self, frame) -> FrameResult:
         with self._stage("relocalization"):
@@ -247,9 +253,13 @@ class FeatureOnlyOdometry:
         if not outcome.succeeded:
             details = recovery.details() if not recovery.succeeded else {"stage": outcome.stage}
             self._emit(EventKind.RECOVERY_FAILED, **{**details, "reason": outcome.reason})
+            lost_s = frame.timestamp - self.lost_at
+            if lost_s > self.config.odometry.tracking.new_map_after_lost_s:
+                return self._start_over(frame, current.features,
+                                        reason=f"no relocalization for {lost_s:.1f} s: a new map")
             return self._no_pose(current.features.features.uv)
         self._emit(EventKind.RECOVERY_SUCCEEDED, **recovery.details(), local_map_inliers=outcome.inliers)
-        self.state = State.OK
+        self.state, self.lost_at = State.OK, None
         self.relocalized_at = self.frames_processed
         self.posed = []  # no velocity across the gap
         return self._tracked(current, outcome)
