@@ -4,7 +4,9 @@
     python3 benchmarks/real_data.py results/bench_real
 
 A row per folder and stride, a column group per method: ATE (median over seeds, and its range), frames posed
-(median) of the frames played, the first frame with a pose (median), the failures the run reported (tracking
+(median) of the frames played, the ATE per map where a run made more than one (each map after a new start aligned
+by a Sim(3) of its own, vo_core.eval.ate_per_map: how ORB-SLAM3's maps are judged; median over seeds, the number
+of maps beside it), the first frame with a pose (median), the failures the run reported (tracking
 failures, divergences, rejected starts, keyframes the feature map overruled: their sum, median over seeds),
 recoveries, reinitializations, and silent failures (summed over seeds): a stretch at another scale than its map's with
 nothing reported there (vo_core.eval.silent), or a run whose ATE is over 5x the best method's on that folder and stride
@@ -27,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from vo_core.eval.metrics import ate_per_map  # noqa: E402
 from vo_core.eval.silent import SilentConfig, scale_segments  # noqa: E402
 from vo_core.trajectory import read_trajectory  # noqa: E402
 
@@ -71,8 +74,20 @@ def read_cells(folder: Path) -> list[dict]:
             "recoveries": counts.get("recovery_succeeded", 0), "reinitializations": counts.get("reinitialization", 0),
             "reported": any(counts.get(kind, 0) for kind in REPORTED),
             "silent_stretches": silent_stretches(cell, events) if metrics["posed_frames"] else 0,
+            **per_map(cell, events),
         })
     return rows
+
+
+def per_map(cell: Path, events: list[dict]) -> dict:
+    """The ATE with each map aligned on its own, and how many maps, where the run began more than one (a start
+    after the first); nothing where it made one."""
+    starts = [e["timestamp"] for e in events if e["kind"] == "initialization_succeeded"][1:]
+    if not starts or not (cell / "groundtruth.tum").exists():
+        return {}
+    ate, maps, _ = ate_per_map(read_trajectory(cell / "trajectory.tum"), read_trajectory(cell / "groundtruth.tum"),
+                               np.array(starts))
+    return {"ate_per_map": ate, "maps": maps}
 
 
 def silent_stretches(cell: Path, events: list[dict]) -> int:
@@ -92,8 +107,8 @@ def table(cells: list[dict]) -> str:
         groups[(cell["sequence"], cell["method"])].append(cell)
     methods = list(dict.fromkeys(cell["method"] for cell in cells))
     sequences = sorted(dict.fromkeys(cell["sequence"] for cell in cells), key=_folder_and_stride)
-    header = ["folder (stride)", "method", "ATE m (median, range)", "posed", "first pose", "failures", "recoveries",
-              "reinits", "silent", "DSO / ORB-SLAM2"]
+    header = ["folder (stride)", "method", "ATE m (median, range)", "posed", "per map (maps)", "first pose",
+              "failures", "recoveries", "reinits", "silent", "DSO / ORB-SLAM2"]
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for sequence in sequences:
         for method in methods:
@@ -109,7 +124,7 @@ def table(cells: list[dict]) -> str:
             peers = PEERS.get(folder) if stride == 1 and method == methods[0] else None
             lines.append("| " + " | ".join([
                 f"{folder} ({stride})", method, _ate(ates),
-                f"{_median([c['posed'] for c in runs]):.0f}/{runs[0]['frames']}",
+                f"{_median([c['posed'] for c in runs]):.0f}/{runs[0]['frames']}", _per_map(runs),
                 _number(_median([c["first_pose"] for c in runs])), _number(_median([c["failures"] for c in runs])),
                 _number(_median([c["recoveries"] for c in runs])),
                 _number(_median([c["reinitializations"] for c in runs])), f"**{silent}**" if silent else "",
@@ -131,6 +146,15 @@ def _folder_and_stride(sequence: str) -> tuple[str, int]:
     """A bench sequence's folder and stride (NAME.strideK, fdmo bench's naming): each folder's strides together."""
     folder, _, stride = sequence.partition(".stride")
     return folder, int(stride or 1)
+
+
+def _per_map(runs: list[dict]) -> str:
+    """Where a run made more than one map: the median over the seeds of the ATE per map (a run with one map counts
+    its ATE), and the most maps a run made."""
+    if max(c.get("maps", 1) for c in runs) < 2:
+        return ""
+    ate = _median([c.get("ate_per_map", c["ate"]) for c in runs])
+    return f"{ate:.4f} ({max(c.get('maps', 1) for c in runs)})" if ate is not None else ""
 
 
 def _median(values: list) -> float | None:

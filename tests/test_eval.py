@@ -11,6 +11,7 @@ from vo_core.errors import InputError
 from vo_core.eval import (
     EvalConfig,
     associate,
+    ate_per_map,
     associate_timestamps,
     evaluate,
     fit_alignment,
@@ -126,6 +127,25 @@ def test_ate_of_a_known_offset():
     ate = evaluate(Trajectory(truth.timestamps, poses), truth, align="none")["ate"]
     assert ate["max"] == pytest.approx(0.3) and ate["min"] == pytest.approx(0.1)
     assert ate["rmse"] == pytest.approx(np.sqrt((0.09 + 0.01) / 2)) and ate["mean"] == pytest.approx(0.2)
+
+
+def test_a_run_of_two_maps_is_judged_map_by_map():
+    """A run that began a second map 3 s in, at another place and scale (a monocular restart): one Sim(3) over both
+    leaves metres of error, one per map leaves each map's own (here none); the maps' errors pooled into one RMSE."""
+    truth = smooth_ground_truth()
+    second = truth.timestamps >= truth.timestamps[0] + 3.0
+    poses = seen_through(truth, SIMILARITY).poses
+    poses[second] = seen_through(truth.subset(np.flatnonzero(second)),
+                                 sim3(2.5, so3_exp(np.array([0.0, 0.5, 0.0])), np.array([1.0, 0.0, 0.0]))).poses
+    estimate = Trajectory(truth.timestamps, poses)
+    start = [truth.timestamps[np.argmax(second)]]
+    assert evaluate(estimate, truth)["ate"]["rmse"] > 0.1
+    ate, maps, poses_judged = ate_per_map(estimate, truth, np.array(start))
+    assert ate == pytest.approx(0.0, abs=1e-9) and maps == 2 and poses_judged == len(truth)
+    assert ate_per_map(estimate, truth, np.array([]))[0] == pytest.approx(evaluate(estimate, truth)["ate"]["rmse"])
+    # A map too short to align (2 poses) is left out.
+    _, maps, poses_judged = ate_per_map(estimate, truth, np.array([truth.timestamps[-2]]))
+    assert maps == 1 and poses_judged == len(truth) - 2
 
 
 def test_rpe_pairs_in_frames_and_metres():

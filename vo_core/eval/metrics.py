@@ -79,6 +79,23 @@ def ate_errors(aligned_estimate: Trajectory, ground_truth: Trajectory) -> np.nda
     return np.linalg.norm(ground_truth.positions - aligned_estimate.positions, axis=1)
 
 
+def ate_per_map(estimate: Trajectory, ground_truth: Trajectory, map_starts_s: np.ndarray,
+                max_dt: float = DEFAULT_MAX_DT_S, min_poses: int = 3) -> tuple[float, int, int]:
+    """(ATE_rmse, maps, poses) of a run made of separate maps: the poses from each of ``map_starts_s`` (a new map
+    began, at a scale and place of its own) to the next are aligned by a Sim(3) of their own, as ORB-SLAM3's maps are
+    evaluated one by one, and the RMSE taken over all of them: sqrt(1/n sum_m sum_i ||q_i - (s_m R_m p_i + t_m)||^2).
+    A map with fewer than ``min_poses`` matched poses has no Sim(3) and is left out. One map: the ATE."""
+    matched, truth = associate(estimate, ground_truth, max_dt)
+    boundaries = np.searchsorted(matched.timestamps, np.asarray(map_starts_s, float))
+    errors = [ate_errors(fit_alignment(matched.subset(rows), truth.subset(rows), "sim3").apply(matched.subset(rows)),
+                         truth.subset(rows))
+              for rows in np.split(np.arange(len(matched)), boundaries) if len(rows) >= min_poses]
+    if not errors:
+        return float("nan"), 0, 0
+    squared = np.concatenate(errors) ** 2
+    return float(np.sqrt(squared.mean())), len(errors), len(squared)
+
+
 # ------------------------------------------------------------------------------------------------- RPE
 
 
