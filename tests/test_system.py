@@ -48,22 +48,25 @@ def test_the_bundled_direct_run_is_unchanged():
 
 
 @pytest.mark.skipif(not BUNDLED.is_dir(), reason="the bundled sequence is not in this checkout")
-@pytest.mark.parametrize("seed, why", [(2, "no better"), (0, "too few to restart from")])
+@pytest.mark.parametrize("seed, why", [(2, None), (0, "too few to restart from")])
 def test_frames_missed_after_the_start_do_not_trade_the_window_for_a_young_feature_map(seed, why):
-    """Live under load, frames 4-16 and 18-22 were missed right after the start. The frame after the gap is suspect,
-    and the feature map (the start's two keyframes, 3 frames apart) disagrees with its direct pose. Restarted on the
-    feature map's ~75 two-view points, the direct map's scale collapsed 10x, unreported, and the run ended 0.09-0.13 m
-    off. The same window goes on instead (0.005 m, seeds 0-7): at seed 2 the alignment from the recovered pose fits
-    the images no better, no lock to leave; at seed 0 it fits them better, but none of the points in view is seen by
-    3 keyframes, too few to restart from (which seed takes which path moves with the start's arithmetic: seeds 0-7
-    all stay in the window)."""
+    """Live under load, frames 4-16 and 18-22 were missed right after the start. The frame after the gap is suspect.
+    Restarted on the feature map's ~75 two-view points (the start's two keyframes, 3 frames apart), the direct map's
+    scale collapsed 10x, unreported, and the run ended 0.09-0.13 m off. The same window goes on instead (0.005 m): at
+    seed 2 the feature map confirms the direct pose (it explains the majority of the recovery's inliers, 69 %),
+    ``why`` None; at seed 0 it disagrees and the alignment from the recovered pose fits better, but none of
+    the points in view is seen by 3 keyframes, too few to restart from (which seed takes which path moves with the
+    start's arithmetic)."""
     sequence = open_sequence(BUNDLED)
     odometry = Odometry(load_config(overrides=["method=fdmo", f"seed={seed}"]), sequence.camera)
     missed = set(range(4, 17)) | set(range(18, 23))
     results = [odometry.track(frame) for frame in sequence if frame.index not in missed]
     events = [e for r in results for e in r.events]
     resumed = [e for e in events if e.kind is EventKind.DIRECT_RESUMED]
-    assert resumed and why in resumed[0].details["why"]
+    if why is None:
+        assert not resumed and any(e.kind is EventKind.TRACKING_CHECKED and e.frame_index == 17 for e in events)
+    else:
+        assert resumed and why in resumed[0].details["why"]
     assert not {EventKind.DIRECT_RESTARTED, EventKind.REINITIALIZATION} & {e.kind for e in events}
     posed = [r for r in results if r.T_world_cam is not None]
     estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
