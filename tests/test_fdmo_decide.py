@@ -8,9 +8,9 @@ restart the direct map (at which pose, with how many feature depths), or feature
 direct keyframe: whether it joins the feature map, or why not (the feature map overrules its pose, the direct map's
 scale jumped at it, or the feature map holds still since it overruled one).
 
-The system's defaults throughout (agreement 0.5, overrule share 10 %, gap motion share 0.5, prior reliability 0.25, a
-jump 5 intervals; a recovery 30 inliers and 5 %, a search around the estimate 10 %; the same optimum within 2.45 px,
-elsewhere under 20 % explained, a restart 50 points seen by 3 keyframes).
+The system's defaults throughout (agreement 0.5, a conclusive share 10 % (a search around the estimate's too), gap
+motion share 0.5, prior reliability 0.25, a jump 5 intervals; a recovery 30 inliers and 5 %; the same optimum within
+2.45 px, elsewhere under 20 % explained, a restart 50 points seen by 3 keyframes).
 """
 
 from __future__ import annotations

@@ -171,8 +171,8 @@ def test_direct_alone_reports_the_frame_after_missed_frames():
 
 def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_goes_on(clean_ate):
     """A suspect pose the feature map is made to disagree with (the direct pose explains 49 % of its matches, under the
-    majority that agrees) is recovered; direct alignment from the recovered pose ends where the motion model's did, so the
-    direct pose was right: tracking goes on in the same window (no restart, no new map). With the tolerance at 0 px,
+    majority that agrees) is recovered; direct alignment from the recovered pose ends where the motion model's did, so
+    the direct pose was right: tracking goes on in the same window (no restart, no new map). With the tolerance at 0 px,
     the fits decide."""
     def after_gap(overrides, explained: float = 0.49, motion_model_fit: float = 1.0):
         odometry = Odometry(load_config(overrides=["method=fdmo", *overrides]), CAMERA)
@@ -217,10 +217,10 @@ def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_
 
 def test_a_feature_pose_too_weakly_supported_does_not_overrule_the_direct_one():
     """The feature map overrules a converged direct pose only with a conclusive share of the points in view; when
-    that share is out of reach (overrule_share 100 %) and the feature pose is made to disagree (agreement above
+    that share is out of reach (a conclusive share of 100 %) and the feature pose is made to disagree (agreement above
     100 %), the frame after missed frames keeps its direct pose, reported as unverified, and the map goes on."""
-    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", "fdmo.overrule_share=1.0"]),
-                        CAMERA)
+    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01",
+                                                     "features.recovery.conclusive_found_fraction=1.0"]), CAMERA)
     results = [odometry.track(frame) for frame in SMOOTH if not FAULT_START <= frame.index < FAULT_START + 3]
     after = next(r for r in results if r.frame_index == FAULT_START + 3)
     unverified = [e for e in after.events if e.kind is EventKind.TRACKING_UNVERIFIED]
@@ -247,14 +247,14 @@ def make_stay_behind(odometry: Odometry, frame_index: int) -> None:
 @pytest.mark.parametrize("lags", [False, True])
 def test_after_missed_frames_a_direct_pose_that_stays_behind_is_not_kept_on_weak_evidence(lags, clean_ate):
     """Direct alignment after a large jump locks onto the view it left where the images look alike (parking's rows
-    of cars) and stays behind. With the feature map too weak to decide (agreement above 100 %, overrule share out of
+    of cars) and stays behind. With the feature map too weak to decide (agreement above 100 %, a conclusive share out of
     reach), the frame after missed frames keeps its direct pose only where it covers half the image motion the last
     motion predicts over the gap: the right pose is kept as unverified, a pose made to stay where the camera was
     before the gap is refused, with the reason, and never enters the map. The lag comes after a jump's gap (6
     intervals, more than the sudden-motion factor's 5); the right pose after a shorter one (4 intervals), which the
     prediction does not judge."""
-    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01", "fdmo.overrule_share=1.0"]),
-                        CAMERA)
+    odometry = Odometry(load_config(overrides=["method=fdmo", "fdmo.agreement=1.01",
+                                                     "features.recovery.conclusive_found_fraction=1.0"]), CAMERA)
     after_gap = FAULT_START + (5 if lags else 3)
     if lags:
         make_stay_behind(odometry, after_gap)

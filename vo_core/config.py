@@ -66,13 +66,6 @@ class HybridConfig:
     # pose's disagreement is not asked for: it is the feature map's own error (the direct pose explained 29-79 % of the
     # recovery's inliers where it was the better pose).
     same_optimum_px: float = 2.45
-    # The feature map's pose overrules a suspect direct pose that converged only when it found this share of the
-    # map points in view (the share a search around an estimate needs, features.recovery): below it, the feature
-    # map is too weakly anchored in the view to say the direct pose is wrong, and the direct pose is kept,
-    # reported as unverified. Ours: parking with 3.15 m dropped, candidates found 4.8 % (and a global recovery at
-    # a look-alike place 30 frames back 5.6 %) and contradicted a right direct pose (1.42 m against direct's
-    # 0.0153 m); the recoveries that rightly overruled one found 13 % (teddy 100:20).
-    overrule_share: float = 0.10
     # After missed frames, a direct pose that nothing confirms (no feature pose, or one too weak to overrule it) is
     # kept only where it lies within this share of the image motion that the last motion, kept up over the time
     # that passed, predicts, from the predicted pose (ours: half). Further, it is the tracker's lock onto the view it

@@ -9,7 +9,7 @@ the system carries them out. ``decide``: what becomes of a frame direct tracking
                                                                            the direct pose may stand unconfirmed,
                                                                            unless that stayed behind a reliable prior
             disagrees with a conclusive share of the points in view         not kept
-            (fdmo.overrule_share)
+            (features.recovery.conclusive_found_fraction)
             disagrees, too weak to overrule                                ACCEPT_UNVERIFIED where the direct pose
                                                                            may stand unconfirmed, else not kept
         no feature pose:
@@ -96,7 +96,7 @@ def _suspect(evidence: Evidence, config) -> Decision | str:
         agrees = explained >= fdmo.agreement
         # A feature pose confirms only as a recovery (its inliers and share), and overrules only with a conclusive
         # share; a weaker one, agreeing or not, leaves the direct pose to the motion check.
-        conclusive = features.succeeded if agrees else pose.found_fraction >= fdmo.overrule_share
+        conclusive = features.succeeded if agrees else pose.found_fraction >= recovery.conclusive_found_fraction
         if conclusive and not agrees:
             return f"; the feature map disagrees (the direct pose explains {explained:.0%} of its matches)"
         if not conclusive:
@@ -137,9 +137,9 @@ def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, scale_
     view (``features.recovery.min_inliers``, FDMO's 30).
 
     - It overrules the direct pose where it would be taken as a recovery (30 inliers), found a conclusive share of the
-      map points in view (``fdmo.overrule_share``), and most of its matches contradict the direct pose (it explains
-      under ``fdmo.agreement`` of them). Checked at every keyframe, it catches the direct map drifting from
-      the feature map's points where no frame's tracking looks suspect.
+      map points in view (``features.recovery.conclusive_found_fraction``), and most of its matches contradict the
+      direct pose (it explains under ``fdmo.agreement`` of them). Checked at every keyframe, it catches the direct map
+      drifting from the feature map's points where no frame's tracking looks suspect.
     - It does not follow a keyframe at which the direct map's scale jumped (``scale_jumped``, the direct half's scale
       watch, direct/scale_watch.py): the feature map holds the scale the direct map had. TUM fr1/desk: the window's
       scale collapsed 2x at one keyframe of a fast sweep, then 10-70x over the next 20, while the direct keyframe still
@@ -164,7 +164,7 @@ def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, scale_
         return None if agrees else f"the feature map holds still: it does not confirm the direct keyframe ({measured})"
     if scale_jumped:
         return f"the direct map's scale jumped at this keyframe ({measured})"
-    if agrees or not recovery_grade or check.found_fraction < fdmo.overrule_share:
+    if agrees or not recovery_grade or check.found_fraction < recovery.conclusive_found_fraction:
         return None
     return f"the feature map disagrees with the direct keyframe ({measured})"
 
@@ -231,7 +231,7 @@ def _recovery(evidence: Evidence, reason: str, config) -> Decision:
     refusal = _off_reliable_prediction(
         evidence, evidence.prior.recovered,
         f"the recovered pose ({pose.inliers} inliers, {pose.found_fraction:.1%} of the points in view)",
-        pose.found_fraction >= config.fdmo.overrule_share, config)
+        pose.found_fraction >= config.features.recovery.conclusive_found_fraction, config)
     if refusal is not None:
         return Decision(Outcome.LOST, reason, refusal=refusal)
     return Decision(Outcome.RECOVER, reason)
@@ -303,7 +303,8 @@ def after_recovery(evidence: RecoveredEvidence, config) -> Continuation:
     better fit of the converged alignments goes on; with none, feature tracking."""
     fdmo = config.fdmo
     direct, retracked = evidence.direct, evidence.retracked
-    elsewhere = (direct is not None and direct.converged and evidence.found_fraction >= fdmo.overrule_share
+    elsewhere = (direct is not None and direct.converged
+                 and evidence.found_fraction >= config.features.recovery.conclusive_found_fraction
                  and evidence.direct_explained < fdmo.elsewhere_share)
     if direct is not None and direct.converged and retracked.converged:
         if evidence.shift_px <= fdmo.same_optimum_px:

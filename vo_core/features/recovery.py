@@ -190,7 +190,7 @@ class Relocalizer:
         recovery = self.config.recovery
         if stage == ESTIMATE:
             return (pose.num_inliers >= recovery.min_inliers_around_estimate
-                    and pose.found_fraction >= recovery.min_found_fraction_around_estimate)
+                    and pose.found_fraction >= recovery.conclusive_found_fraction)
         return pose.num_inliers >= recovery.min_inliers and pose.found_fraction >= recovery.min_found_fraction
 
     def _local_candidates(self, feature_map: FeatureMap, last_keyframe: int | None) -> set[int]:
