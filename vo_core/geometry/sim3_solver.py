@@ -35,7 +35,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import sim3, sim3_exp, sim3_inverse, sim3_scale, transform_points
@@ -264,6 +263,10 @@ def _optimize(into_a: Sim3Sightings, into_b: Sim3Sightings, camera: PinholeCamer
     deltaHuber = sqrt(th2) (scipy applies it to each pixel component, g2o to each observation's 2-vector)."""
     if len(into_a.points) + len(into_b.points) == 0:
         return S_a_b
+    # Imported here: scipy.optimize takes 0.1 s to import, and only loop closure refines a similarity; the rest of this
+    # module (Umeyama's alignment) is in every evaluated run.
+    from scipy.optimize import least_squares
+
     solution = least_squares(
         lambda delta: _residuals(into_a, into_b, camera, sim3_exp(delta) @ S_a_b),
         np.zeros(SIM3_DOF), loss="huber", f_scale=np.sqrt(chi2), max_nfev=iterations, method="trf",
