@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from vo_core.eval.metrics import ate_per_map  # noqa: E402
 from vo_core.eval.silent import SilentConfig, scale_segments  # noqa: E402
-from vo_core.trajectory import read_trajectory  # noqa: E402
+from vo_core.trajectory import Trajectory, read_trajectory  # noqa: E402
 
 FAILURES = ("tracking_failed", "divergence_detected", "initialization_rejected", "keyframe_overruled")
 REPORTED = (*FAILURES, "tracking_unverified", "recovery_failed", "recovery_succeeded", "direct_restarted",
@@ -66,6 +66,8 @@ def read_cells(folder: Path) -> list[dict]:
         metrics = json.loads(metrics_file.read_text())
         events = [json.loads(line) for line in (cell / "events.jsonl").read_text().splitlines() if line.strip()]
         counts = metrics["events"]
+        judged = (read_trajectory(cell / "trajectory.tum"), read_trajectory(cell / "groundtruth.tum")) \
+            if metrics["posed_frames"] and (cell / "groundtruth.tum").exists() else None
         rows.append({
             "sequence": sequence, "method": method, "ate": (metrics.get("evaluation") or {}).get("ate", {}).get("rmse"),
             "posed": metrics["posed_frames"], "frames": metrics["processed_frames"],
@@ -73,31 +75,27 @@ def read_cells(folder: Path) -> list[dict]:
             "failures": sum(counts.get(kind, 0) for kind in FAILURES),
             "recoveries": counts.get("recovery_succeeded", 0), "reinitializations": counts.get("reinitialization", 0),
             "reported": any(counts.get(kind, 0) for kind in REPORTED),
-            "silent_stretches": silent_stretches(cell, events) if metrics["posed_frames"] else 0,
-            **per_map(cell, events),
+            "silent_stretches": silent_stretches(*judged, events) if judged else 0,
+            **(per_map(*judged, events) if judged else {}),
         })
     return rows
 
 
-def per_map(cell: Path, events: list[dict]) -> dict:
+def per_map(estimate: Trajectory, truth: Trajectory, events: list[dict]) -> dict:
     """The ATE with each map aligned on its own, and how many maps, where the run began more than one (a start
     after the first); nothing where it made one."""
     starts = [e["timestamp"] for e in events if e["kind"] == "initialization_succeeded"][1:]
-    if not starts or not (cell / "groundtruth.tum").exists():
+    if not starts:
         return {}
-    ate, maps, _ = ate_per_map(read_trajectory(cell / "trajectory.tum"), read_trajectory(cell / "groundtruth.tum"),
-                               np.array(starts))
+    ate, maps, _ = ate_per_map(estimate, truth, np.array(starts))
     return {"ate_per_map": ate, "maps": maps}
 
 
-def silent_stretches(cell: Path, events: list[dict]) -> int:
-    estimate_file, truth_file = cell / "trajectory.tum", cell / "groundtruth.tum"
-    if not truth_file.exists():
-        return 0
+def silent_stretches(estimate: Trajectory, truth: Trajectory, events: list[dict]) -> int:
     reported = np.array([e["timestamp"] for e in events if e["kind"] in REPORTED])
     starts = np.array([e["timestamp"] for e in events if e["kind"] in NEW_MAP])
     config = SilentConfig()
-    segments = scale_segments(read_trajectory(estimate_file), read_trajectory(truth_file), reported, starts, config)
+    segments = scale_segments(estimate, truth, reported, starts, config)
     return sum(segment.silent(config) for segment in segments)
 
 
@@ -151,10 +149,9 @@ def _folder_and_stride(sequence: str) -> tuple[str, int]:
 def _per_map(runs: list[dict]) -> str:
     """Where a run made more than one map: the median over the seeds of the ATE per map (a run with one map counts
     its ATE), and the most maps a run made."""
-    if max(c.get("maps", 1) for c in runs) < 2:
-        return ""
+    maps = max(c.get("maps", 1) for c in runs)
     ate = _median([c.get("ate_per_map", c["ate"]) for c in runs])
-    return f"{ate:.4f} ({max(c.get('maps', 1) for c in runs)})" if ate is not None else ""
+    return f"{ate:.4f} ({maps})" if maps > 1 and ate is not None else ""
 
 
 def _median(values: list) -> float | None:

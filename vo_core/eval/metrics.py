@@ -85,15 +85,19 @@ def ate_per_map(estimate: Trajectory, ground_truth: Trajectory, map_starts_s: np
     began, at a scale and place of its own) to the next are aligned by a Sim(3) of their own, as ORB-SLAM3's maps are
     evaluated one by one, and the RMSE taken over all of them: sqrt(1/n sum_m sum_i ||q_i - (s_m R_m p_i + t_m)||^2).
     A map with fewer than ``min_poses`` matched poses has no Sim(3) and is left out. One map: the ATE."""
-    matched, truth = associate(estimate, ground_truth, max_dt)
-    boundaries = np.searchsorted(matched.timestamps, np.asarray(map_starts_s, float))
-    errors = [ate_errors(fit_alignment(matched.subset(rows), truth.subset(rows), "sim3").apply(matched.subset(rows)),
-                         truth.subset(rows))
-              for rows in np.split(np.arange(len(matched)), boundaries) if len(rows) >= min_poses]
+    errors = [ate_errors(fit_alignment(piece, truth, "sim3").apply(piece), truth)
+              for piece, truth in maps_of(*associate(estimate, ground_truth, max_dt), map_starts_s)
+              if len(piece) >= min_poses]
     if not errors:
         return float("nan"), 0, 0
     squared = np.concatenate(errors) ** 2
     return float(np.sqrt(squared.mean())), len(errors), len(squared)
+
+
+def maps_of(matched: Trajectory, truth: Trajectory, map_starts_s: np.ndarray) -> list[tuple[Trajectory, Trajectory]]:
+    """Associated poses (``associate``'s pair) cut where each new map began: (estimate, truth) per map, in time."""
+    boundaries = np.searchsorted(matched.timestamps, np.asarray(map_starts_s, float))
+    return [(matched.subset(rows), truth.subset(rows)) for rows in np.split(np.arange(len(matched)), boundaries)]
 
 
 # ------------------------------------------------------------------------------------------------- RPE

@@ -20,6 +20,7 @@ import numpy as np
 from vo_core.errors import InputError
 from vo_core.eval.align import umeyama
 from vo_core.eval.associate import DEFAULT_MAX_DT_S, associate
+from vo_core.eval.metrics import maps_of
 from vo_core.trajectory import Trajectory
 
 
@@ -49,11 +50,9 @@ def scale_segments(estimate: Trajectory, ground_truth: Trajectory, reported_s: n
     in the segment before (a scale that changed at a reported failure shows from the next segment on).
     ``reported_s``: the timestamps of the reported failures; ``map_starts_s``: where a new map began (a new scale,
     judged on its own)."""
-    matched, truth = associate(estimate, ground_truth, max_dt)
-    boundaries = np.searchsorted(matched.timestamps, np.asarray(map_starts_s, float))
     segments = []
-    for rows in np.split(np.arange(len(matched)), boundaries):
-        segments += _map_segments(matched.subset(rows), truth.subset(rows), np.asarray(reported_s, float), config)
+    for matched, truth in maps_of(*associate(estimate, ground_truth, max_dt), map_starts_s):
+        segments += _map_segments(matched, truth, np.asarray(reported_s, float), config)
     return segments
 
 
