@@ -656,7 +656,7 @@ class Odometry:
         window_poses = {k.frame_index: k.T_world_cam for k in self.direct.keyframes}
         probation = self.direct.on_probation
         new = [_NewFeatureKeyframe(k.frame_index, k.timestamp, k.image, k.T_world_cam, k.median_depth, probation,
-                                   k.made_at, k.scale_jumped)
+                                   k.made_at)
                for k in self.direct.keyframes if k.frame_index not in self.feature_keyframes_given]
         if not self.feature_keyframes_given and new:
             self._start_segment(new[0].timestamp)
@@ -675,8 +675,7 @@ class Odometry:
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                  keyframe.made_at, keyframe.median_depth)
             checked = {} if check is None else {"check": check.details()}
-            refused = judge_keyframe(check, keyframe.start_on_probation, keyframe.scale_jumped,
-                                     self.held is not None, self.config)
+            refused = judge_keyframe(check, keyframe.start_on_probation, self.held is not None, self.config)
             if refused is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,
                       {"keyframe": keyframe.frame_index, "reason": refused, **checked})
@@ -769,7 +768,6 @@ class _NewFeatureKeyframe:
     median_depth: float
     start_on_probation: bool  # the direct map's start was still on probation (start_check.py)
     made_at: np.ndarray  # the pose the direct keyframe was made at (Keyframe.made_at): the one the feature map checks
-    scale_jumped: bool  # the direct map's scale jumped at it (Keyframe.scale_jumped)
 
 
 def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:

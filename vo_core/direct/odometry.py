@@ -92,9 +92,6 @@ class Keyframe:
     # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.
     reference_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     reference_idepth: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    # The scale watch saw the map's scale jump at this keyframe (scale_watch.py): the feature map does not follow it
-    # (fdmo/decide.judge_keyframe).
-    scale_jumped: bool = False
     # The pose the keyframe was made at (tracking's, a start's or a restart's), before window optimizations moved it:
     # the one the feature map checks, beside the first of them (system.py, fdmo/decide.judge_keyframe).
     made_at: np.ndarray = field(init=False)
@@ -738,7 +735,6 @@ class DirectOdometry:
         idepth = np.concatenate([k.active_idepth for k in self.keyframes])
         reading = self.scale_watch.observe(step / seconds, float(np.mean(idepth)) if len(idepth) else float("nan"))
         result.scale_ratio, result.mean_inverse_depth = reading.step_ratio, reading.mean_inverse_depth
-        newest.scale_jumped = reading.jump
         if reading.jump:
             result.events.append(_event(EventKind.SCALE_JUMP, frame, {"keyframe": newest.frame_index,
                                                                        **reading.details()}))
