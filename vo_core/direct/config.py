@@ -239,7 +239,8 @@ class ScaleWatchConfig:
     compared with the median of the recent ones, and the window's mean inverse depth with the recent ones'. Depths
     change from one keyframe to the next by at most the step (about a tenth of the depth, DSO making keyframes when
     the optical flow passes a threshold), and a camera that slows down or turns leaves them as they were: a factor
-    of 1.6 in both at once, in opposite directions, is not a motion but the map's scale changing."""
+    of 1.6 in both at once, in opposite directions, is reported as the map's scale changing. A warning only: near
+    points leaving the window move the mean inverse depth alike (the drone clip), so no decision reads it."""
 
     recent_keyframes: int = 5  # the speeds and depths compared with (DSO's window: setting_minFrames)
     min_recent: int = 3  # fewer recent keyframes than this: nothing to compare with yet
