@@ -14,6 +14,7 @@ from app.sinks.files import DIRECT_MAP_FILE, EVENTS_FILE, FEATURE_MAP_FILE, FRAM
     METRICS_FILE, TRAJECTORY_FILE
 from vo_core.config import load_config
 from vo_core.synthetic import make_sequence
+from vo_core.system import Odometry
 
 SEQUENCE = make_sequence("smooth", 50, seed=0, width=320, height=240)
 DROPS = [(20, 20)]  # frames 20..39: tracking fails, a recovery brings the camera back
@@ -47,3 +48,20 @@ def test_two_runs_give_the_same_files(method, tmp_path):
         assert contents[0] == contents[1] and (contents[0] is not None or name == FEATURE_MAP_FILE), name
     metrics = [without_timings(json.loads((folder / METRICS_FILE).read_text())) for folder in (first, second)]
     assert metrics[0] == metrics[1]
+
+
+def test_the_feature_map_grown_beside_tracking_gives_the_synchronous_files(tmp_path, monkeypatch):
+    """Synchronous mapping grows the feature map at a keyframe on the feature half's worker while the next frames are
+    tracked; whatever reads the map waits for it first. The run's files are the ones of growing it in turn, the feature
+    keyframes' events at the same frames (they reach the sinks a few frames later)."""
+    config = load_config(overrides=["method=fdmo"])
+    run_sequence(SEQUENCE, config, tmp_path / "beside", drops=DROPS)
+    monkeypatch.setattr(Odometry, "_grows_beside", lambda self, initialization: False)
+    run_sequence(SEQUENCE, config, tmp_path / "in_turn", drops=DROPS)
+    beside, in_turn = tmp_path / "beside", tmp_path / "in_turn"
+    events = [sorted(json.dumps(without_timings(json.loads(line)), sort_keys=True)
+                     for line in (folder / EVENTS_FILE).read_text().splitlines()) for folder in (beside, in_turn)]
+    assert any('"feature_keyframe_added"' in event for event in events[0])
+    assert events[0] == events[1]
+    for name in SAME_BYTES:
+        assert (beside / name).read_bytes() == (in_turn / name).read_bytes(), name

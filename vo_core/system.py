@@ -46,6 +46,7 @@ from vo_core.geometry.motion_model import extrapolate
 from vo_core.direct.odometry import DirectFrame, DirectOdometry, DirectTracking, Keyframe
 from vo_core.features.config import FeatureConfig
 from vo_core.features.loop_closing import LoopReport
+from vo_core.features.mapping import MappingReport
 from vo_core.events import Event, EventBus, EventKind, FrameResult, MapSnapshot, Sink
 from vo_core.fdmo.decide import Decision, Next, Outcome, after_recovery, decide, judge_keyframe
 from vo_core.fdmo.evidence import Evidence, gather, gather_recovered
@@ -113,6 +114,9 @@ class Odometry:
         self.feature_map_lock = threading.Lock()
         self.queued_frame: int | None = None  # the last frame handed to the mapping thread
         self.feature_keyframes_given: set[int] = set()  # direct keyframes handed to the feature map since it started
+        # Feature keyframes the feature half maps beside the next frames (synchronous mapping): keyframe -> (the frame
+        # and timestamp that added it, the check's details), until their reports are taken (_feature_keyframes_grown).
+        self.feature_keyframes_growing: dict[int, tuple[int, float, dict]] = {}
         # The feature map's segments (FeatureMap.begin_segment: with loop closure a map started anew after a loss is
         # kept as a segment of its own) in time, [first keyframe's time, the next segment's or None], by segment; and
         # those the active map holds (more than one once older ones merged into it): a loop moves their poses.
@@ -193,7 +197,11 @@ class Odometry:
 
     def flush(self) -> None:
         """With a mapping thread: map what is queued and pass on what that produced, so that the maps and what the
-        sinks heard are complete (before a snapshot, at the end of a pass)."""
+        sinks heard are complete (before a snapshot, at the end of a pass). Synchronously, the feature keyframe grown
+        beside the last frames is waited for and reported."""
+        if self.feature_keyframes_growing:
+            for event in self._feature_keyframes_grown(wait=True)[0]:
+                self.bus.event(event)
         if self.mapper is None:
             return
         self._own_the_maps()
@@ -204,16 +212,17 @@ class Odometry:
         if self.front_end is not None:
             return self.front_end.map_snapshot()
         snapshot = self.direct.map_snapshot()
-        if self.features is not None:
-            snapshot.feature_points_world = self.features.points_world()
-            snapshot.feature_keyframe_poses = self.features.keyframe_poses()
+        if self.features is not None:  # while a keyframe grows the feature map beside tracking, as it was before it
+            snapshot.feature_points_world, snapshot.feature_keyframe_poses = (
+                self.features.map_view() if self.feature_keyframes_growing
+                else (self.features.points_world(), self.features.keyframe_poses()))
         return snapshot
 
     def close(self) -> None:
         """The mapper maps what it has and stops; what it produced reaches the sinks; the threads beside tracking end;
         then the sinks close."""
+        self.flush()
         if self.mapper is not None:
-            self.flush()
             self.mapper.close()
             if self.feature_mapper is not None:
                 self.feature_mapper.close()
@@ -247,6 +256,11 @@ class Odometry:
         self._count_lost(frame, result)
         if result.T_world_cam is not None:
             self.posed = (self.posed + [(frame.timestamp, result.T_world_cam)])[-self.config.fdmo.prior_frames:]
+        if self.feature_keyframes_growing:
+            events, ms = self._feature_keyframes_grown(wait=False)
+            if events:
+                result.events += events
+                result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + ms
         result.timings_ms["total"] = _ms_since(start)
         return result
 
@@ -682,20 +696,40 @@ class Odometry:
                 self.held = refused
                 continue
             self.held = None
+            if self._grows_beside(initialization):
+                self.features.add_keyframe_beside(keyframe.frame_index, keyframe.timestamp, keyframe.image,
+                                                  keyframe.T_world_cam, keyframe.median_depth, window_poses)
+                self.feature_keyframes_growing[keyframe.frame_index] = (result.frame_index, result.timestamp, checked)
+                continue
             report = self.features.add_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                 keyframe.T_world_cam, keyframe.median_depth, window_poses)
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
                 report.tracked_points = self._add_initial_tracks(initialization, window_poses)
             result.timings_ms["feature_mapping"] = (result.timings_ms.get("feature_mapping", 0.0)
                                                     + _ms_since(start))
-            _emit(result, EventKind.FEATURE_KEYFRAME_ADDED, {**report.as_details(), **checked})
-            for culled in report.culled_keyframes:
-                _emit(result, EventKind.FEATURE_KEYFRAME_CULLED, {"keyframe": culled})
+            result.events += _feature_keyframe_events(report, checked, result.frame_index, result.timestamp)
             if report.loop is not None:
                 self._report_loop(report.loop, result)
             if keyframe.frame_index == result.frame_index and len(report.new_matches):
                 result.matches_2d = report.new_matches
                 result.matches_inlier = None
+
+    def _grows_beside(self, initialization) -> bool:
+        """Synchronously, the feature map grows at a keyframe on the feature half's worker while the next frames are
+        tracked; whatever reads the feature map waits for it first, so the trajectory is the one of growing it in turn
+        (BENCHMARKS.md, Speed). Not at a start (its tracks join the map next), nor with loop closing, whose loops move
+        the window at once. With mapping threads it grows on their feature mapper."""
+        return self.mapper is None and initialization is None and not self.config.features.loop_closing.enabled
+
+    def _feature_keyframes_grown(self, wait: bool) -> tuple[list[Event], float]:
+        """The events, at the frames that added them, and the mapping time of the feature keyframes grown beside
+        tracking and waited for since the last call (all of them, the last waited for here, where ``wait``)."""
+        events, ms = [], 0.0
+        for report in self.features.settle() if wait else self.features.take_grown():
+            frame_index, timestamp, checked = self.feature_keyframes_growing.pop(report.frame_index)
+            events += _feature_keyframe_events(report, checked, frame_index, timestamp)
+            ms += report.ms
+        return events, ms
 
     def _start_segment(self, timestamp: float) -> None:
         """The feature map's active segment begins at ``timestamp``: an older one still open ends there."""
@@ -778,6 +812,13 @@ def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:
 
 def _ms_since(start: float) -> float:
     return (time.perf_counter() - start) * 1000.0
+
+
+def _feature_keyframe_events(report: MappingReport, checked: dict, frame_index: int, timestamp: float) -> list[Event]:
+    """A feature keyframe's events, at the frame that added it."""
+    events = [(EventKind.FEATURE_KEYFRAME_ADDED, {**report.as_details(), **checked})]
+    events += [(EventKind.FEATURE_KEYFRAME_CULLED, {"keyframe": culled}) for culled in report.culled_keyframes]
+    return [Event(kind, frame_index, float(timestamp), details) for kind, details in events]
 
 
 def _emit(result: FrameResult, kind: EventKind, details: dict) -> None:

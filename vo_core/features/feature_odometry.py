@@ -4,6 +4,10 @@ decides nothing: vo_core/system.py calls them in the order of FDMO's flowcharts.
 
 Nothing here estimates a keyframe pose: keyframes take their direct twins' poses (``add_keyframe`` first
 copies the window's optimized poses over, FDMO 4.3).
+
+One worker thread beside the caller describes and checks the next keyframe (``describe_ahead``) and grows the map
+(``add_keyframe_beside``), in the order they were asked for; every other method first waits for the growth in flight
+(``_settle``). The map each of them reads is therefore the one the synchronous order gives, whenever the worker ran.
 """
 
 from __future__ import annotations
@@ -36,17 +40,22 @@ class FeatureOdometry:
         self.loop_closer = LoopCloser(config.loop_closing, config.orb, camera) if config.loop_closing.enabled else None
         self.checked: FeatureKeyframe | None = None  # the keyframe check_keyframe described, for add_keyframe
         self.ahead: _Ahead | None = None  # a keyframe being described and checked beside the direct half's mapping
-        self._ahead_pool: ThreadPoolExecutor | None = None
+        self.growth: Future | None = None  # a keyframe being mapped beside the caller (add_keyframe_beside)
+        self.view_before_growth: tuple[np.ndarray, dict[int, np.ndarray]] | None = None  # map_view meanwhile
+        self.grown: list[MappingReport] = []  # growths finished and waited for, not yet taken (take_grown)
+        self._worker: ThreadPoolExecutor | None = None
 
     @property
     def empty(self) -> bool:
         """Whether the active map has no keyframe (older segments aside)."""
+        self._settle()
         newest = self.map.newest()
         return newest is None or newest.segment != self.map.segment
 
     @property
     def newest_keyframe(self) -> int | None:
         """The frame index of the newest feature keyframe."""
+        self._settle()
         newest = self.map.newest()
         return None if newest is None else newest.frame_index
 
@@ -54,6 +63,7 @@ class FeatureOdometry:
         """A map at a new scale starts over (the direct map initialized again from scratch). With loop closing, a map
         to ``keep`` stays as an older segment that a place seen again merges with the new one; one not to keep (a
         start found wrong) goes."""
+        self._settle()
         self._finish_ahead()
         if self.loop_closer is None:
             self.map = FeatureMap()
@@ -71,6 +81,7 @@ class FeatureOdometry:
         TrackWithMotionModel, on the features the keyframe is described by anyway); None where the active map has no
         keyframe yet. Taken from ``describe_ahead`` where it ran for this keyframe on this map; the keyframe described
         is the one ``add_keyframe`` maps next."""
+        self._settle()
         ahead = self._finish_ahead()
         if ahead is not None and ahead.serves(frame_index, image, T_world_cam, self.map.next_keyframe_id):
             self.checked, check = ahead.result.result()
@@ -103,6 +114,24 @@ class FeatureOdometry:
         """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses. With loop
         closing, the keyframe then looks for a loop (loop_closing.py), the window held where a loop moves the map."""
         start = time.perf_counter()
+        keyframe = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth, window_poses)
+        return self._grow(keyframe, set(window_poses), start)
+
+    def add_keyframe_beside(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
+                            scene_depth: float, window_poses: dict[int, np.ndarray]) -> None:
+        """``add_keyframe`` with the map's growth on the worker, beside the caller's next frames; its report is
+        ``take_grown``'s once a later call has waited for it. Not with loop closing: a loop moves the direct window
+        at once."""
+        start = time.perf_counter()
+        keyframe = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth, window_poses)
+        self.view_before_growth = (self.points_world(), self.keyframe_poses())
+        self.growth = self._worker_pool().submit(self._grow, keyframe, set(window_poses), start)
+
+    def _keyframe_to_map(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
+                         scene_depth: float, window_poses: dict[int, np.ndarray]) -> FeatureKeyframe:
+        """The keyframe ``check_keyframe`` described (described now where it did not), at its direct pose, and the
+        map's keyframes at their window poses."""
+        self._settle()
         self._finish_ahead()
         self.map.sync_poses(window_poses)
         keyframe, self.checked = self.checked, None
@@ -110,41 +139,71 @@ class FeatureOdometry:
             keyframe = self.mapper.make_keyframe(self.map.next_keyframe_id, frame_index, timestamp, image,
                                                  T_world_cam, scene_depth)
         keyframe.T_world_cam, keyframe.scene_depth = T_world_cam.copy(), scene_depth
-        report = self.mapper.map_keyframe(self.map, keyframe, set(window_poses), start)
-        if self.loop_closer is not None and frame_index in self.map.keyframes:
-            report.loop = self.loop_closer.run(self.map, self.map.keyframes[frame_index], set(window_poses))
+        return keyframe
+
+    def _grow(self, keyframe: FeatureKeyframe, window_frames: set[int], start: float) -> MappingReport:
+        report = self.mapper.map_keyframe(self.map, keyframe, window_frames, start)
+        if self.loop_closer is not None and keyframe.frame_index in self.map.keyframes:
+            report.loop = self.loop_closer.run(self.map, self.map.keyframes[keyframe.frame_index], window_frames)
         return report
+
+    def _settle(self) -> None:
+        """The growth in flight finished (its report kept for ``take_grown``): the map is the synchronous one."""
+        growth, self.growth = self.growth, None
+        if growth is not None:
+            self.grown.append(growth.result())
+            self.view_before_growth = None
+
+    def take_grown(self) -> list[MappingReport]:
+        """The reports of the growths waited for since the last call (none is waited for here)."""
+        grown, self.grown = self.grown, []
+        return grown
+
+    def settle(self) -> list[MappingReport]:
+        """Every growth finished; their reports not yet taken."""
+        self._settle()
+        return self.take_grown()
+
+    def map_view(self) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """The active map's points and keyframe poses for a viewer, without waiting: while a keyframe grows it beside
+        the caller, as they were before it."""
+        if self.growth is not None:
+            return self.view_before_growth
+        return self.points_world(), self.keyframe_poses()
 
     def describe_ahead(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray) -> None:
         """A frame the direct half is making a keyframe at ``T_world_cam``: described (its ORB features and words) and
         checked (``check_keyframe``) on a thread beside the direct half's mapping of it, which changes neither the
         feature map nor that pose, and whose kernels release the interpreter's lock as OpenCV does. Whatever describes
         or changes the map next waits for it (``_finish_ahead``): the mapper's extractor is used by one thread at a
-        time."""
-        if self._ahead_pool is None:
-            self._ahead_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-keyframe-ahead")
+        time. Queued behind a growth in flight, it checks against the map that growth leaves."""
         T_world_cam = np.array(T_world_cam, float)
-        result = self._ahead_pool.submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam, 0.0)
-        self.ahead = _Ahead(frame_index, image, T_world_cam, self.map.next_keyframe_id, result)
+        result = self._worker_pool().submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam, 0.0)
+        self.ahead = _Ahead(frame_index, image, T_world_cam, result)
 
     def add_initial_tracks(self, first: int, second: int, uv_first: np.ndarray, uv_second: np.ndarray,
                            points_world: np.ndarray) -> int:
         """The feature initializer's tracks and their triangulated points start the map (FDMO part 1)."""
+        self._settle()
         return self.mapper.add_tracked_points(self.map, first, second, uv_first, uv_second, points_world)
 
     def recover(self, image: np.ndarray, last_keyframe: int | None,
                 T_world_estimate: np.ndarray | None = None) -> RecoveryOutcome:
+        self._settle()
         return self.relocalizer.recover(self.map, image, last_keyframe, T_world_estimate)
 
     def track(self, image: np.ndarray, T_world_guess: np.ndarray, around_keyframe: int) -> RecoveryOutcome:
+        self._settle()
         return self.relocalizer.track(self.map, image, T_world_guess, around_keyframe)
 
     def explained(self, pose: PoseFromMap, T_world_cam: np.ndarray, frame: FrameFeatures) -> float:
+        self._settle()
         return self.relocalizer.explained(self.map, pose, T_world_cam, frame)
 
     def reprojection_shift(self, pose: PoseFromMap, T_world_a: np.ndarray, T_world_b: np.ndarray) -> float:
         """Median distance in pixels between where the pose's inlier map points appear from camera pose a and
         from b: how far apart two poses are, in what the images can tell apart (inf with no point in front)."""
+        self._settle()
         return image_motion_px(self.camera, self.map.points.position[pose.point_ids[pose.inlier]], T_world_a, T_world_b)
 
     def depths_in_view(self, pose: PoseFromMap, T_world_cam: np.ndarray,
@@ -152,40 +211,50 @@ class FeatureOdometry:
         """Pixels and inverse depths, in a camera at ``T_world_cam``, of the map points the pose's inliers matched
         that at least ``min_observations`` keyframes observe: where a direct map restarted there gets its first depths
         (at the feature map's scale)."""
+        self._settle()
         matched = pose.point_ids[pose.inlier]
         matched = matched[self.map.observation_counts(matched) >= min_observations]
         view = project_points(self.map.points, matched, T_world_cam, self.camera, self.config.orb)
         return view.uv, 1.0 / transform_points(se3_inverse(T_world_cam), self.map.points.position[view.point_ids])[:, 2]
 
     def point_positions(self, point_ids: np.ndarray) -> np.ndarray:
+        self._settle()
         return self.map.points.position[point_ids]
 
     def points_world(self) -> np.ndarray:
         """The active map's points (an older segment's are in another frame)."""
+        self._settle()
         points = self.map.points
         return points.position[points.alive & (points.segment == self.map.segment)]
 
     def keyframe_poses(self) -> dict[int, np.ndarray]:
+        self._settle()
         return {k.frame_index: k.T_world_cam for k in self.map.active_keyframes()}
 
+    def _worker_pool(self) -> ThreadPoolExecutor:
+        if self._worker is None:
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="fdmo-feature-worker")
+        return self._worker
+
     def close(self) -> None:
-        """The describing and checking thread ends (``FeatureProcess`` ends its process)."""
-        if self._ahead_pool is not None:
-            self._ahead_pool.shutdown()
-            self._ahead_pool, self.ahead = None, None
+        """The worker finishes and ends (``FeatureProcess`` ends its process)."""
+        if self._worker is not None:
+            self._settle()
+            self._worker.shutdown()
+            self._worker, self.ahead = None, None
 
 
 @dataclass(frozen=True)
 class _Ahead:
-    """A keyframe's description and check started by ``describe_ahead``: valid for that frame's image and pose while
-    the feature map has the keyframes it had then."""
+    """A keyframe's description and check started by ``describe_ahead``: valid for that frame's image and pose where
+    the feature map has the keyframes it had when the check ran (a growth queued before it ran first)."""
 
     frame_index: int
     image: np.ndarray
     T_world_cam: np.ndarray
-    map_keyframes: int  # FeatureMap.next_keyframe_id when it started
     result: Future  # (FeatureKeyframe, KeyframeCheck | None)
 
-    def serves(self, frame_index: int, image: np.ndarray, T_world_cam: np.ndarray, map_keyframes: int) -> bool:
-        return (self.frame_index == frame_index and self.image is image and self.map_keyframes == map_keyframes
-                and np.array_equal(self.T_world_cam, T_world_cam))
+    def serves(self, frame_index: int, image: np.ndarray, T_world_cam: np.ndarray, next_keyframe_id: int) -> bool:
+        """(Asked once the result is there.) The keyframe described took the map's next id when it ran."""
+        return (self.frame_index == frame_index and self.image is image and np.array_equal(self.T_world_cam, T_world_cam)
+                and self.result.result()[0].keyframe_id == next_keyframe_id)
