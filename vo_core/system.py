@@ -213,9 +213,7 @@ class Odometry:
             return self.front_end.map_snapshot()
         snapshot = self.direct.map_snapshot()
         if self.features is not None:  # while a keyframe grows the feature map beside tracking, as it was before it
-            snapshot.feature_points_world, snapshot.feature_keyframe_poses = (
-                self.features.map_view() if self.feature_keyframes_growing
-                else (self.features.points_world(), self.features.keyframe_poses()))
+            snapshot.feature_points_world, snapshot.feature_keyframe_poses = self.features.map_view()
         return snapshot
 
     def close(self) -> None:
