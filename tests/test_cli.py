@@ -119,7 +119,7 @@ def scripted(monkeypatch):
     the sequence: ``fdmo run`` builds one first to check the method) and the options of the next one."""
     ScriptedFrontEnd.instances = []
     options: dict = {}
-    monkeypatch.setattr(vo_core.system, "make_front_end", lambda config, camera: ScriptedFrontEnd(**options))
+    monkeypatch.setattr(vo_core.system, "make_front_end", lambda config, camera, start_witness: ScriptedFrontEnd(**options))
     return ScriptedFrontEnd.instances, options
 
 

@@ -1,6 +1,6 @@
 """``--method features`` (ORB-SLAM2's tracking and local mapping as odometry) on rendered sequences: accuracy against
-the truth, its events, relocalization after a jump back to a seen place; and the sparse Schur complement of the
-local bundle adjustment against the dense one."""
+the truth, its events, a new map's probation, relocalization after a jump back to a seen place; and the sparse Schur
+complement of the local bundle adjustment against the dense one."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, adjust_window
+from vo_core.init.epipolar_check import EpipolarCheck
 from vo_core.synthetic import make_sequence
 from vo_core.system import IMPLEMENTED_METHODS, Odometry
 from vo_core.trajectory import Trajectory
@@ -74,6 +75,45 @@ def test_the_run_reports_its_start_keyframes_local_mapping_and_culling(smooth):
     assert sum(d["new_points"] for d in added) > 500  # triangulation with the covisible keyframes
     snapshot = odometry.map_snapshot()
     assert len(snapshot.feature_points_world) > 300 and len(snapshot.keyframe_poses) >= 3
+
+
+def test_a_right_start_passes_its_probation(smooth):
+    """The start witness measured the new map's first keyframes and found nothing against them."""
+    _, results, odometry = smooth
+    assert EventKind.INITIALIZATION_REJECTED not in kinds(results)
+    assert odometry.front_end.probation is None  # over: the witness answered
+    assert sum(r.is_keyframe for r in results) >= 6
+
+
+def test_a_start_the_witness_refuses_is_taken_back(smooth, monkeypatch):
+    """Where the witness contradicts the start at the new map's sixth keyframe, the map goes: every pose it gave is
+    retracted (the first frame's by ``first_frame``), that frame has none, and a new start begins there and
+    poses the frames after it."""
+    sequence, _, _ = smooth
+    answers = []
+
+    def refuse_the_first_start(self, keyframes, camera):
+        answers.append([k.frame_index for k in keyframes])
+        reason = "the ORB matches of 3 of 3 keyframe pairs contradict the start's motion" if len(answers) == 1 else None
+        return reason, {"epipolar_pairs": 3, "epipolar_disagreeing": 3 if reason else 0}
+
+    monkeypatch.setattr(EpipolarCheck, "disagreement", refuse_the_first_start)
+    results, _ = run(list(sequence), sequence.camera)
+    rejected = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_REJECTED]
+    assert len(rejected) == 1 and "contradict" in rejected[0].details["reason"]
+    refused_at = rejected[0].frame_index
+    # the map's first six keyframes but those culled as redundant meanwhile, its first and this one among them
+    assert 3 <= len(answers[0]) <= 6 and answers[0][-1] == refused_at
+    started = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_SUCCEEDED]
+    assert answers[0][0] == started[0].details["first_frame"]
+    assert rejected[0].details["first_frame"] == started[0].details["first_frame"]
+    posed_in_it = [r.timestamp for r in results if started[0].frame_index <= r.frame_index < refused_at]
+    assert all(r.T_world_cam is not None for r in results[started[0].frame_index:refused_at])
+    assert rejected[0].details["retracted"] == posed_in_it
+    assert results[refused_at].T_world_cam is None
+    assert len(started) == 2 and started[1].details["first_frame"] == refused_at
+    assert all(r.T_world_cam is not None for r in results[started[1].frame_index:])
+    assert rejected[0].details["epipolar_disagreeing"] == 3  # the witness's measures join the event
 
 
 def test_same_input_same_trajectory(smooth):

@@ -72,7 +72,7 @@ def test_a_run_that_builds_a_kernel_says_so_once_and_leaves_it_out_of_the_fps(da
     kernels = [fresh_kernel(), fresh_kernel()]
     calls = {2: lambda: kernels[0](np.ones(3)), 4: lambda: kernels[1](np.ones(3))}  # two builds, one announcement
     monkeypatch.setattr(vo_core.system, "make_front_end",
-                        lambda config, camera: ScriptedFrontEnd(at_frame=calls))
+                        lambda config, camera, start_witness: ScriptedFrontEnd(at_frame=calls))
     assert main(["run", str(dataset), "--out", str(tmp_path / "out"), "--no-rrd"]) == 0
     err = capsys.readouterr().err
     assert err.count("fdmo: building the compiled kernels, once") == 1

@@ -54,7 +54,7 @@ from vo_core.front_ends import IMPLEMENTED_METHODS, make_front_end  # noqa: F401
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import transform_points
 from vo_core.geometry.multiview import project_world
-from vo_core.init.registry import initializer_factory
+from vo_core.init.registry import initializer_factory, start_witness
 from vo_core.mapping_thread import MappingThread
 
 def maps_features_in_a_process(config: Config) -> bool:
@@ -85,7 +85,7 @@ class Odometry:
         self.config = config
         self.camera = camera
         self.bus = EventBus(sinks)
-        self.front_end = make_front_end(config, camera)
+        self.front_end = make_front_end(config, camera, lambda: start_witness(config.direct.start_check.epipolar))
         self.features = None
         if self.front_end is None:
             make_initializer = initializer_factory(config.direct, config.init, camera, config.seed)

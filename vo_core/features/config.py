@@ -129,6 +129,12 @@ class OrbInitializationConfig:
     min_map_points: int = 100  # ORB-SLAM2 CreateInitialMapMonocular: reset below 100 tracked map points
     # ORB-SLAM2 Tracking::Track: lost with at most 5 keyframes in the map, the system resets (a new start)
     reset_when_lost_below_keyframes: int = 6
+    # Ours (ORB-SLAM2 keeps every start its two-view checks pass): a new map stays on probation until this many
+    # keyframes after its first two are mapped; then the start witness (direct.start_check.epipolar's settings)
+    # compares the epipolar geometry of its keyframes' ORB matches with their poses and a contradicted start is
+    # taken back. Four, as the direct start check's window optimizations: with the two start keyframes, a map of
+    # six, where losing it no longer resets it (reset_when_lost_below_keyframes).
+    probation_keyframes: int = 4
 
 
 @dataclass

@@ -3,12 +3,14 @@ behind one small protocol (``FrontEnd``): the KLT baseline (klt/, paper 003) and
 (features.py: ORB-SLAM2's tracking and local mapping). ``Odometry`` passes their results through to its sinks.
 
 They sit above the halves and geometry and below the system: a front end may use the feature half (features.py
-does) and geometry, never the direct half's flow, the initializers or the system.
+does) and geometry, never the direct half's flow, the initializers or the system. What the system hands in is used
+through its methods alone: the start witness that checks the feature odometry's new maps (vo_core/init's, as the
+direct odometry's starts are checked).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 from vo_core.errors import InputError
 from vo_core.events import FrameResult, MapSnapshot
@@ -30,10 +32,11 @@ class FrontEnd(Protocol):
     def map_snapshot(self) -> MapSnapshot: ...
 
 
-def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
+def make_front_end(config: Config, camera: PinholeCamera,
+                   start_witness: Callable[[], object | None] = lambda: None) -> FrontEnd | None:
     """The pipeline of a method that runs on its own (the KLT baseline, the feature-based odometry); None for the
     direct methods, whose per-frame flow is ``Odometry.track``'s. Methods that do not exist yet are refused, never
-    faked."""
+    faked. ``start_witness`` makes a fresh witness for each new map of the feature odometry (None: not checked)."""
     if config.method == "klt":
         from vo_core.front_ends.klt.pipeline import KltOdometry
 
@@ -41,7 +44,7 @@ def make_front_end(config: Config, camera: PinholeCamera) -> FrontEnd | None:
     if config.method == "features":
         from vo_core.front_ends.features import FeatureOnlyOdometry
 
-        return FeatureOnlyOdometry(config.features, camera, seed=config.seed)
+        return FeatureOnlyOdometry(config.features, camera, seed=config.seed, start_witness=start_witness)
     if config.method in DIRECT_METHODS:
         return None
     raise InputError(

@@ -5,6 +5,10 @@ Per frame:
 
     not initialized: ORB features into the two-frame start (features/orb_initializer.py); once it has a map, the
         map's two keyframes, and local mapping of the second
+    a new map on probation (ours): once it has mapped ``probation_keyframes`` more keyframes, the start witness
+        compares the epipolar geometry of its keyframes' ORB matches with their poses (vo_core/init/epipolar_check.py,
+        the check of the direct odometry's starts); a start it contradicts is taken back (its poses retracted) and
+        the start begins again from the frame
     tracking: motion model or reference keyframe, then the local map (features/feature_tracking.py); where tracking
         wants a keyframe, the frame becomes one and local mapping runs on it (features/local_mapping.py) before the next
         frame: ORB-SLAM2's two threads, one after the other. ORB-SLAM2 takes keyframes only while local mapping
@@ -24,7 +28,10 @@ from __future__ import annotations
 import dataclasses
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from enum import Enum
+from types import SimpleNamespace
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -53,11 +60,32 @@ class State(Enum):
     LOST = "lost"
 
 
+@dataclass
+class StartProbation:
+    """A new map until its start has proven itself: its keyframes' images in mapping order, for the witness, and the
+    frames posed in it (taken back if the witness refuses the start)."""
+
+    witness: object  # an EpipolarCheck (vo_core/init): prepare, disagreement, close
+    first_frame: int
+    second_frame: int
+    images: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe frame index -> image
+    posed_timestamps: list[float] = field(default_factory=list)
+
+    def views(self, feature_map: FeatureMap) -> list:
+        """The probation keyframes still in the map as the witness reads them: frame index, image, pose now."""
+        return [SimpleNamespace(frame_index=index, image=image, T_world_cam=feature_map.keyframes[index].T_world_cam)
+                for index, image in self.images.items() if index in feature_map.keyframes]
+
+
 class FeatureOnlyOdometry:
-    def __init__(self, config: FeatureConfig, camera: PinholeCamera, seed: int = 0):
+    def __init__(self, config: FeatureConfig, camera: PinholeCamera, seed: int = 0,
+                 start_witness: Callable[[], object | None] = lambda: None):
         self.config = config
         self.camera = camera
         self.seed = seed
+        self.start_witness = start_witness  # a fresh witness for each new map's probation (None: none)
+        self.probation: StartProbation | None = None
+        self.reference_image: np.ndarray | None = None  # the start's reference frame's image (the first keyframe's)
         vocabulary = load_vocabulary(config.vocabulary)
         self.vocabulary = vocabulary
         start_features = config.odometry.initialization.features_factor * config.orb.num_features
@@ -120,6 +148,7 @@ class FeatureOnlyOdometry:
         if step.failure is not None and (step.started or self.initializer.reference is None):
             self._emit(EventKind.INITIALIZATION_FAILED, reason=step.failure)
         if step.started:
+            self.reference_image = frame.image
             self._emit(EventKind.INITIALIZATION_STARTED, reference_frame=frame.index, features=len(features.features))
         if step.model is not None:
             self._emit(EventKind.INITIALIZER_MODEL, **step.model)
@@ -155,6 +184,12 @@ class FeatureOnlyOdometry:
         self.state = State.OK
         self.posed = [(start.first_timestamp, first.T_world_cam)]
         self._map_keyframe(second, tracked)
+        witness = self.start_witness()
+        if witness is not None:
+            self.probation = StartProbation(witness, start.first_index, frame.index,
+                                            {start.first_index: self.reference_image, frame.index: frame.image},
+                                            [frame.timestamp])
+            witness.prepare(self.probation.views(self.map), self.camera)
         self._moved_to(tracked)
         return self._pose_result(tracked, None, is_keyframe=True, inliers=len(ids))
 
@@ -179,6 +214,10 @@ class FeatureOnlyOdometry:
             keyframe = self._new_keyframe(current.frame_index, current.timestamp, current.features,
                                           current.T_world_cam, current.point_ids.copy())
             self._map_keyframe(keyframe, current)
+        if self.probation is not None:
+            refused = self._check_start(current, keyframe)
+            if refused is not None:
+                return refused
         self._moved_to(current)
         return self._pose_result(current, last, is_keyframe=keyframe is not None, inliers=outcome.inliers)
 
@@ -221,6 +260,47 @@ class FeatureOnlyOdometry:
         self.posed = (self.posed + [(current.timestamp, current.T_world_cam)])[-2:]
         self.last = current
 
+    # ------------------------------------------------------------------------------------ the start's probation
+
+    def _check_start(self, current: TrackedFrame, keyframe: FeatureKeyframe | None) -> FrameResult | None:
+        """A frame posed in a map on probation. Its keyframes' images are measured as they come (beside tracking);
+        at the last probation keyframe the witness compares them with the poses the map gives them now. Returns the
+        frame's result where the start is taken back."""
+        probation = self.probation
+        probation.posed_timestamps.append(current.timestamp)
+        if keyframe is None:
+            return None
+        probation.images[keyframe.frame_index] = self._frame.image
+        views = probation.views(self.map)
+        if len(probation.images) < 2 + self.config.odometry.initialization.probation_keyframes:
+            probation.witness.prepare(views, self.camera)
+            return None
+        self.probation = None
+        reason, measures = probation.witness.disagreement(views, self.camera)
+        return None if reason is None else self._take_back_start(probation, reason, measures)
+
+    def _take_back_start(self, probation: StartProbation, reason: str, measures: dict) -> FrameResult:
+        """The start failed its probation: the map goes, the poses given in it are retracted (the first frame's with
+        ``first_frame``), and the start begins again from this frame, placed where the refused one was."""
+        self._emit(EventKind.INITIALIZATION_REJECTED, reason=reason, initializer="orb",
+                   first_frame=probation.first_frame, second_frame=probation.second_frame,
+                   keyframes=len(probation.images), **measures,
+                   retracted=[t for t in probation.posed_timestamps if t != self._frame.timestamp])
+        self._forget_map()
+        with self._stage("orb"):
+            features = self._extract_for_start(self._frame.image)
+        return self._initialize(self._frame, features)
+
+    def _forget_map(self) -> None:
+        if self.probation is not None:
+            self.probation.witness.close()
+        self.probation = None
+        self.map = FeatureMap()
+        self.local_mapper.reset()
+        self.initializer.reset()
+        self.posed, self.last = [], None
+        self.state, self.lost_at = State.NOT_INITIALIZED, None
+
     # ------------------------------------------------------------------------------------ lost, relocalized
 
     def _lost(self, frame, current: TrackedFrame, outcome: TrackingOutcome) -> FrameResult:
@@ -238,11 +318,7 @@ class FeatureOnlyOdometry:
         self.T_world_origin = self.last.T_world_cam
         self.origin_depth = newest.scene_depth if np.isfinite(newest.scene_depth) else self.origin_depth
         self._emit(EventKind.REINITIALIZATION, from_frame=frame.index, keyframes=len(self.map), reason=reason)
-        self.map = FeatureMap()
-        self.local_mapper.reset()
-        self.initializer.reset()
-        self.posed, self.last = [], None
-        self.state, self.lost_at = State.NOT_INITIALIZED, None
+        self._forget_map()
         return self._initialize(frame, features)
 
     def _relocalize(self, frame) -> FrameResult:

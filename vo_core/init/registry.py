@@ -56,8 +56,13 @@ class Starts:
         return make_initializer(self.direct_config, self.init_config, self.camera, self.seed, failed)
 
     def start_witness(self) -> EpipolarCheck | None:
-        config = self.direct_config.start_check.epipolar
-        return EpipolarCheck(config) if config.enabled else None
+        return start_witness(self.direct_config.start_check.epipolar)
+
+
+def start_witness(config) -> EpipolarCheck | None:
+    """A fresh witness for the check of a new start (``direct.start_check.epipolar``'s settings, which the feature
+    odometry's starts are checked with too); None where it is disabled."""
+    return EpipolarCheck(config) if config.enabled else None
 
 
 def initializer_factory(direct_config, init_config, camera: PinholeCamera, seed: int) -> Starts:
