@@ -14,7 +14,8 @@ nothing reported there (vo_core.eval.silent), or a run whose ATE is over 5x the 
 frames (medians): an ATE over a few easy frames is no measure for a run that posed the hard ones too (KITTI at a
 third of its frame rate: the features method's 0.018 m on 9 of 34 frames made fdmo's and direct's 0.21 m on 32
 "silent"). DSO's and ORB-SLAM2's figures at stride 1 are those of
-../shared/data/PEERS.md and ../shared/data/extra/README.md.
+../shared/data/PEERS.md and ../shared/data/extra/README.md; DSO's at strides 2 and 3 are its runs on every K-th line
+of the list.txt ../shared/peers' prepare_dso.py writes (BENCHMARKS.md says how; two runs).
 """
 
 from __future__ import annotations
@@ -39,12 +40,25 @@ REPORTED = (*FAILURES, "tracking_unverified", "recovery_failed", "recovery_succe
 NEW_MAP = ("initialization_succeeded", "reinitialization")  # a new scale begins
 SILENT_ATE_FACTOR = 5.0  # the issue's definition: over 5x the best method's ATE with nothing reported
 COMPARABLE_POSED_SHARE = 0.9  # ... among the methods that posed this share of its frames (issue 46's 90 % coverage)
-PEERS = {  # stride 1: (DSO ATE m, DSO posed, ORB-SLAM2 ATE m, ORB-SLAM2 posed), from ../shared/data
-    "tum_fr3_teddy_first200": ("0.0064-0.0080", "194/200", "0.0064-0.0097", "190/200"),
-    "kitti00_first100": ("0.147-0.149", "94/100", "0.118-0.154", "98/100"),
-    "vamr_parking_first200": ("0.018-0.025", "194/200", "0.029-0.037", "198/200"),
-    "euroc_mh05_clip": ("0.041-0.043", "574/585", "0.033-0.040", "500-528/585"),
-    "tum_fr1_desk": ("0.33-0.40", "606/613", "0.014-0.015", "541/613"),
+DSO_AT_STRIDES = {  # (folder, stride): (ATE m, posed, -, -); "-": under 3 poses (its start fails and resets)
+    ("tum_fr3_teddy_first200", 2): ("0.0061-0.0068", "86/100", None, None),
+    ("tum_fr3_teddy_first200", 3): ("0.0061 (one run of two)", "1-19/67", None, None),
+    ("kitti00_first100", 2): ("-", "1/50", None, None),
+    ("kitti00_first100", 3): ("-", "0-1/34", None, None),
+    ("vamr_parking_first200", 2): ("0.015-0.018", "82/100", None, None),
+    ("vamr_parking_first200", 3): ("-", "1/67", None, None),
+    ("euroc_mh05_clip", 2): ("0.044", "260/293", None, None),
+    ("euroc_mh05_clip", 3): ("0.042", "171/195", None, None),
+    ("tum_fr1_desk", 2): ("0.059-0.067", "301/307", None, None),
+    ("tum_fr1_desk", 3): ("-", "3/205", None, None),
+}
+PEERS = {  # (folder, stride): (DSO ATE m, DSO posed, ORB-SLAM2 ATE m, ORB-SLAM2 posed); "-": not measured
+    ("tum_fr3_teddy_first200", 1): ("0.0064-0.0080", "194/200", "0.0064-0.0097", "190/200"),
+    ("kitti00_first100", 1): ("0.147-0.149", "94/100", "0.118-0.154", "98/100"),
+    ("vamr_parking_first200", 1): ("0.018-0.025", "194/200", "0.029-0.037", "198/200"),
+    ("euroc_mh05_clip", 1): ("0.041-0.043", "574/585", "0.033-0.040", "500-528/585"),
+    ("tum_fr1_desk", 1): ("0.33-0.40", "606/613", "0.014-0.015", "541/613"),
+    **DSO_AT_STRIDES,
 }
 
 
@@ -119,14 +133,14 @@ def table(cells: list[dict]) -> str:
                     and c["ate"] > SILENT_ATE_FACTOR * best and not c["reported"]]
             silent = sum(c["silent_stretches"] for c in runs) + len(over)
             folder, stride = _folder_and_stride(sequence)
-            peers = PEERS.get(folder) if stride == 1 and method == methods[0] else None
+            peers = PEERS.get((folder, stride)) if method == methods[0] else None
             lines.append("| " + " | ".join([
                 f"{folder} ({stride})", method, _ate(ates),
                 f"{_median([c['posed'] for c in runs]):.0f}/{runs[0]['frames']}", _per_map(runs),
                 _number(_median([c["first_pose"] for c in runs])), _number(_median([c["failures"] for c in runs])),
                 _number(_median([c["recoveries"] for c in runs])),
                 _number(_median([c["reinitializations"] for c in runs])), f"**{silent}**" if silent else "",
-                f"{peers[0]} on {peers[1]} / {peers[2]} on {peers[3]}" if peers else "",
+                _peers(peers),
             ]) + " |")
     return "\n".join(lines)
 
@@ -152,6 +166,13 @@ def _per_map(runs: list[dict]) -> str:
     maps = max(c.get("maps", 1) for c in runs)
     ate = _median([c.get("ate_per_map", c["ate"]) for c in runs])
     return f"{ate:.4f} ({maps})" if maps > 1 and ate is not None else ""
+
+
+def _peers(peers: tuple | None) -> str:
+    if peers is None:
+        return ""
+    dso, orb_slam2 = f"{peers[0]} on {peers[1]}", "-" if peers[2] is None else f"{peers[2]} on {peers[3]}"
+    return f"{dso} / {orb_slam2}"
 
 
 def _median(values: list) -> float | None:
