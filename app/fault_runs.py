@@ -145,14 +145,21 @@ def account_frames(played: list[tuple[int, float]], posed_times: np.ndarray, eve
                    blind: set[int] = frozenset()) -> FrameAccount:
     """For each played frame (index, timestamp): posed (a trajectory line at its time), or the reason the events
     give: dropped (inside a frames_dropped range), skipped, repeated, lost (tracking or recovery failed, divergence),
-    initializing (from initialization_started until the next pose, other than the start's own first frame); else
-    unexplained."""
+    retracted (posed in a start found wrong: initialization_rejected lists it, or names it as the start's first
+    frame), initializing (from initialization_started until the next pose, other than the start's own first frame);
+    else unexplained."""
     kinds_at: dict[int, set[str]] = {}
     dropped: set[int] = set()
+    retracted_frames: set[int] = set()
+    retracted_times: list[float] = []
     for event in events:
         kinds_at.setdefault(event["frame"], set()).add(event["kind"])
         if event["kind"] == EventKind.FRAMES_DROPPED.value:
             dropped.update(range(event["details"]["first_frame"], event["details"]["last_frame"] + 1))
+        if event["kind"] == EventKind.INITIALIZATION_REJECTED.value:
+            retracted_frames.add(event["details"].get("first_frame"))
+            retracted_times += event["details"].get("retracted", [])
+    retracted_times = np.sort(np.asarray(retracted_times, float))
     # A start's first frame is posed when the start succeeds, frames later: its pose ends no initialization.
     first_frames = {event["details"].get("first_frame") for event in events
                     if event["kind"] == EventKind.INITIALIZATION_SUCCEEDED.value}
@@ -170,7 +177,8 @@ def account_frames(played: list[tuple[int, float]], posed_times: np.ndarray, eve
             if index in blind and EventKind.DIVERGENCE_DETECTED.value not in kinds:
                 account.blind_poses.append(index)
             continue
-        reason = _reason(index, kinds, dropped, initializing)
+        retracted = index in retracted_frames or _contains(retracted_times, timestamp)
+        reason = "retracted" if retracted else _reason(index, kinds, dropped, initializing)
         if reason is None:
             account.unexplained.append(index)
         else:

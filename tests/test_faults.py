@@ -5,9 +5,10 @@ it must not); and FDMO keeps one scale through the faults it can see past."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from app.fault_runs import CaseReport, run_case, run_fault
+from app.fault_runs import CaseReport, account_frames, run_case, run_fault
 from vo_core.config import load_config
 from vo_core.datasets import open_sequence
 from vo_core.synthetic import make_sequence
@@ -65,3 +66,16 @@ def test_no_map_without_a_baseline(preset, sensor_noise, tmp_path):
         sequence = inject(sequence, Fault("sensor_noise")).sequence
     report = run_case(sequence, load_config(), tmp_path, label=preset, kind=preset)
     assert report.passed and report.account.posed == 0, explain(report)
+
+
+def test_frames_posed_in_a_start_found_wrong_are_accounted_retracted():
+    """A start taken back (initialization_rejected) takes its poses with it: its first frame (named) and the frames it
+    posed (listed) are explained by that event, not left unexplained."""
+    played = [(index, index / 30.0) for index in range(6)]
+    events = [{"frame": 0, "kind": "initialization_started", "details": {}},
+              {"frame": 2, "kind": "initialization_succeeded", "details": {"first_frame": 0}},
+              {"frame": 4, "kind": "initialization_rejected", "details": {"first_frame": 0, "retracted": [2 / 30, 3 / 30]}},
+              {"frame": 4, "kind": "initialization_started", "details": {}}]
+    account = account_frames(played, np.array([5 / 30]), events)
+    assert account.unexplained == [] and account.posed == 1
+    assert account.reasons == {"retracted": 3, "initializing": 2}  # frames 0, 2, 3; frames 1 and 4
