@@ -158,19 +158,22 @@ def test_a_jump_back_to_a_seen_place_is_relocalized(smooth):
 
 
 def test_a_map_lost_for_longer_than_the_relocalization_time_is_left_for_a_new_one(smooth):
-    """After 30 frames the view goes black for 8 frames (0.27 s), then comes back at frame 35's place. Allowed 0.2 s of
+    """After 30 frames the view goes dark for 8 frames (0.27 s), then comes back at frame 35's place. Allowed 0.2 s of
     relocalization (ORB-SLAM3 allows 3 s), the odometry begins a new map at the last pose, reported, and poses the
     frames that follow it, consistent with one another; allowed the default 3 s, the same frames are relocalized in
     the old map instead."""
     sequence, _, _ = smooth
     frames = list(sequence)
-    black = [dataclasses.replace(f, image=np.zeros_like(f.image)) for f in frames[30:38]]
+    # Dark frames as a sensor gives them (a little noise): black ones repeat bit for bit, and a repeated image is no
+    # frame to relocalize on (Odometry._repeats_previous).
+    rng = np.random.default_rng(0)
+    black = [dataclasses.replace(f, image=rng.integers(0, 3, f.image.shape, dtype=np.uint8)) for f in frames[30:38]]
     played = frames[:30] + black + frames[38:]
     results, _ = run(played, sequence.camera, ["features.odometry.tracking.new_map_after_lost_s=0.2"])
     new_maps = [e for r in results for e in r.events if e.kind is EventKind.REINITIALIZATION]
     assert len(new_maps) == 1 and "a new map" in new_maps[0].details["reason"]
     begun = new_maps[0].frame_index
-    assert 30 + 6 <= begun < 38  # after 0.2 s of failed relocalizations, on a black frame
+    assert 30 + 6 <= begun < 38  # after 0.2 s of failed relocalizations, on a dark frame
     after = [r for r in results if r.frame_index > begun and r.T_world_cam is not None]
     assert len(after) >= 8
     times = np.array([r.timestamp for r in after])
@@ -179,6 +182,20 @@ def test_a_map_lost_for_longer_than_the_relocalization_time_is_left_for_a_new_on
     assert evaluate(estimate, truth)["ate"]["rmse"] < 0.02 * path_length(sequence)
     waited, _ = run(played, sequence.camera)
     assert EventKind.REINITIALIZATION not in kinds(waited) and EventKind.RECOVERY_SUCCEEDED in kinds(waited[38:])
+
+
+def test_a_stalled_camera_gets_no_pose_and_says_so(smooth):
+    """Frames that repeat the previous image bit for bit (a stalled driver) get no pose and a ``frame_repeated``
+    event, as in fdmo; tracking goes on with the next new image."""
+    sequence, _, _ = smooth
+    frames = list(sequence)
+    stalled = [dataclasses.replace(frames[29], index=frames[29].index + 1000 + k,
+                                   timestamp=frames[29].timestamp + (k + 1) / 90.0) for k in range(2)]
+    results, _ = run(frames[:30] + stalled + frames[30:40], sequence.camera)
+    assert results[29].T_world_cam is not None
+    for result in results[30:32]:
+        assert result.T_world_cam is None and [e.kind for e in result.events] == [EventKind.FRAME_REPEATED]
+    assert all(r.T_world_cam is not None for r in results[32:])
 
 
 def _played_again(frame, frames_later: int):

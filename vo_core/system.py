@@ -136,8 +136,11 @@ class Odometry:
         self.repeated_since = -1  # the frame whose image the following ones repeat
 
     def track(self, frame) -> FrameResult:
-        """Process the next frame, then tell the sinks what happened."""
-        result = self.front_end.process(frame) if self.front_end is not None else self._track_hybrid(frame)
+        """Process the next frame, then tell the sinks what happened. A frame that repeats the previous image is no
+        measurement, whatever the method (``_repeats_previous``)."""
+        result = FrameResult(frame.index, frame.timestamp, None, tracked=False)
+        if not self._repeats_previous(frame, result):
+            result = self.front_end.process(frame) if self.front_end is not None else self._track_hybrid(frame)
         snapshots = self._deliver_mapped(result)
         for event in result.events:
             self.bus.event(event)
@@ -236,8 +239,6 @@ class Odometry:
     def _track_hybrid(self, raw_frame) -> FrameResult:
         start = time.perf_counter()
         result = FrameResult(raw_frame.index, raw_frame.timestamp, None, tracked=False)
-        if self._repeats_previous(raw_frame, result):
-            return result
         frame = self.direct.prepare(raw_frame)
         result.timings_ms["pyramid"] = _ms_since(start)
         if self.mode is _Mode.FEATURES:
