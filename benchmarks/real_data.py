@@ -40,7 +40,13 @@ REPORTED = (*FAILURES, "tracking_unverified", "recovery_failed", "recovery_succe
 NEW_MAP = ("initialization_succeeded", "reinitialization")  # a new scale begins
 SILENT_ATE_FACTOR = 5.0  # the issue's definition: over 5x the best method's ATE with nothing reported
 COMPARABLE_POSED_SHARE = 0.9  # ... among the methods that posed this share of its frames (issue 46's 90 % coverage)
-DSO_AT_STRIDES = {  # (folder, stride): (ATE m, posed, -, -); "-": under 3 poses (its start fails and resets)
+PEERS = {  # (folder, stride): (DSO ATE m, DSO posed, ORB-SLAM2 ATE m, ORB-SLAM2 posed); None: not measured; DSO's
+    # "-": under 3 poses (its start fails and resets)
+    ("tum_fr3_teddy_first200", 1): ("0.0064-0.0080", "194/200", "0.0064-0.0097", "190/200"),
+    ("kitti00_first100", 1): ("0.147-0.149", "94/100", "0.118-0.154", "98/100"),
+    ("vamr_parking_first200", 1): ("0.018-0.025", "194/200", "0.029-0.037", "198/200"),
+    ("euroc_mh05_clip", 1): ("0.041-0.043", "574/585", "0.033-0.040", "500-528/585"),
+    ("tum_fr1_desk", 1): ("0.33-0.40", "606/613", "0.014-0.015", "541/613"),
     ("tum_fr3_teddy_first200", 2): ("0.0061-0.0068", "86/100", None, None),
     ("tum_fr3_teddy_first200", 3): ("0.0061 (one run of two)", "1-19/67", None, None),
     ("kitti00_first100", 2): ("-", "1/50", None, None),
@@ -51,14 +57,6 @@ DSO_AT_STRIDES = {  # (folder, stride): (ATE m, posed, -, -); "-": under 3 poses
     ("euroc_mh05_clip", 3): ("0.042", "171/195", None, None),
     ("tum_fr1_desk", 2): ("0.059-0.067", "301/307", None, None),
     ("tum_fr1_desk", 3): ("-", "3/205", None, None),
-}
-PEERS = {  # (folder, stride): (DSO ATE m, DSO posed, ORB-SLAM2 ATE m, ORB-SLAM2 posed); "-": not measured
-    ("tum_fr3_teddy_first200", 1): ("0.0064-0.0080", "194/200", "0.0064-0.0097", "190/200"),
-    ("kitti00_first100", 1): ("0.147-0.149", "94/100", "0.118-0.154", "98/100"),
-    ("vamr_parking_first200", 1): ("0.018-0.025", "194/200", "0.029-0.037", "198/200"),
-    ("euroc_mh05_clip", 1): ("0.041-0.043", "574/585", "0.033-0.040", "500-528/585"),
-    ("tum_fr1_desk", 1): ("0.33-0.40", "606/613", "0.014-0.015", "541/613"),
-    **DSO_AT_STRIDES,
 }
 
 
@@ -80,8 +78,7 @@ def read_cells(folder: Path) -> list[dict]:
         metrics = json.loads(metrics_file.read_text())
         events = [json.loads(line) for line in (cell / "events.jsonl").read_text().splitlines() if line.strip()]
         counts = metrics["events"]
-        judged = (read_trajectory(cell / "trajectory.tum"), read_trajectory(cell / "groundtruth.tum")) \
-            if metrics["posed_frames"] and (cell / "groundtruth.tum").exists() else None
+        judged = trajectories(cell, metrics)
         rows.append({
             "sequence": sequence, "method": method, "ate": (metrics.get("evaluation") or {}).get("ate", {}).get("rmse"),
             "posed": metrics["posed_frames"], "frames": metrics["processed_frames"],
@@ -93,6 +90,13 @@ def read_cells(folder: Path) -> list[dict]:
             **(per_map(*judged, events) if judged else {}),
         })
     return rows
+
+
+def trajectories(run: Path, metrics: dict) -> tuple[Trajectory, Trajectory] | None:
+    """A run's estimate and ground truth, where it posed frames and has a ground truth to judge them by."""
+    if not metrics["posed_frames"] or not (run / "groundtruth.tum").exists():
+        return None
+    return read_trajectory(run / "trajectory.tum"), read_trajectory(run / "groundtruth.tum")
 
 
 def per_map(estimate: Trajectory, truth: Trajectory, events: list[dict]) -> dict:

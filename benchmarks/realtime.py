@@ -27,9 +27,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.real_data import silent_stretches  # noqa: E402
+from benchmarks.real_data import silent_stretches, trajectories  # noqa: E402
 from benchmarks.run_shared import markdown_table  # noqa: E402
-from vo_core.trajectory import read_trajectory  # noqa: E402
 
 HEADER = ("run", "processed", "posed", "keyframes", "ATE m", "dropped after the start", "divergences", "lost",
           "silent")
@@ -85,15 +84,7 @@ def read_run(folder: Path) -> dict:
             "keyframes": metrics["keyframes"], "ate": ate, "first_drop": first_drop,
             "divergences": kinds["divergence_detected"], "lost": ate is None or kinds["reinitialization"] > 0,
             "frames": metrics["frames"],
-            "silent": silent(folder, events) if metrics["posed_frames"] else 0}
-
-
-def silent(folder: Path, events: list[dict]) -> int:
-    """The run's silent stretches (benchmarks/real_data.py's measure), where it has a ground truth."""
-    if not (folder / "groundtruth.tum").exists():
-        return 0
-    return silent_stretches(read_trajectory(folder / "trajectory.tum"), read_trajectory(folder / "groundtruth.tum"),
-                            events)
+            "silent": silent_stretches(*judged, events) if (judged := trajectories(folder, metrics)) else 0}
 
 
 def row(index: int, run: dict) -> tuple[str, ...]:
