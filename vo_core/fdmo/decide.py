@@ -30,8 +30,8 @@ saturated pose (most residuals beyond the cutoff) only after missed frames, with
 prior's prediction.
 "Off a reliable prior": the prior's error over the gap is at most fdmo.prior_reliability and the pose lies further than
 fdmo.gap_motion_share of the predicted motion from the predicted pose; a pose the feature map supports (a direct pose
-it confirms, a recovery with a conclusive share) only where, after a gap as long as a jump, it stayed behind (nearer
-the last pose than the predicted one).
+it confirms, a recovery with a conclusive share) only where, after a gap as long as a jump, it stayed behind (moved
+less than fdmo.gap_motion_share of the predicted motion from the last pose).
 """
 
 from __future__ import annotations
@@ -242,16 +242,20 @@ def _off_reliable_prediction(evidence: Evidence, off: Motion | None, whose: str,
     its motion against the prior) is not taken: it lies off the motion the time implies (further than
     ``gap_motion_share`` of the predicted image motion), and that motion has been predictable enough to say so
     (``prior_reliable``). A pose the feature map ``supported`` (a recovery with a conclusive share of the points in
-    view, a direct pose it confirmed) is refused only where it stayed behind after a gap as long as a jump: nearer where
-    the camera was than where the motion puts it (where the view repeats, the feature map's matches find the
-    look-alike place that direct alignment locked onto). None where it may be taken."""
+    view, a direct pose it confirmed) is refused only where it stayed behind after a gap as long as a jump: it moved
+    less than ``gap_motion_share`` of the predicted motion from the last pose, the signature of direct alignment's lock
+    onto the view it left (where the view repeats, the feature map's matches find the same look-alike place). A
+    supported pose that moved as far elsewhere is a place recognized, as FDMO's jump back to a sequence's start
+    (KITTI played twice: 248 px from the last pose where 177 px were predicted, right). None where it may be
+    taken."""
     if not prior_reliable(evidence.prior.error, config):
         return None
     if off is None or not _strays(off, config):
         return None
     intervals_missed = evidence.direct.intervals_missed
     if supported:
-        if intervals_missed < config.fdmo.divergence.sudden_motion_factor or off.found_px >= off.apart_px:
+        if (intervals_missed < config.fdmo.divergence.sudden_motion_factor
+                or off.found_px >= config.fdmo.gap_motion_share * off.predicted_px):
             return None
         whose += f" stayed behind ({off.found_px:.0f} px from the last pose):"
     return (f"{whose} lies {off.apart_px:.0f} px from where the last motion puts the camera after "
