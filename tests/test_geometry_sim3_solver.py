@@ -290,3 +290,21 @@ def test_the_refinement_on_sightings_recovers_the_similarity_and_refuses_wrong_s
     assert_close_to(S_a_b, truth)
     assert not inliers_a[wrong].any() and np.count_nonzero(inliers_a) >= len(inliers_a) - 20 - 3
     assert inliers_b.all()
+
+
+def test_two_keyframes_at_one_place_do_not_see_the_scale():
+    """A loop between two views of one place (no translation between them) is the case where their matches say
+    nothing of the scale: x_a = s R x_b projects where R x_b does. Their information has none along it, and every
+    match agrees with the similarity at a scale three times too large or too small as with the true one; loop
+    closing therefore also starts the neighbourhoods' refinement, whose baselines see the scale, from the similarity
+    without its change of scale (LoopCloser.verify)."""
+    truth = sim3(1.0, so3_exp(np.radians([2.0, -5.0, 1.0])), np.zeros(3))
+    matches, right = scene(np.random.default_rng(21), truth, 80, 0.0)
+    information = sim3_information(matches, CAMERA, truth)
+    assert information[6, 6] < 1e-9 * np.abs(information).max()
+    for scale in (1.0, 0.3, 3.0):
+        agreeing = reprojection_inliers(matches, CAMERA, sim3(scale, truth[:3, :3], np.zeros(3)), REFINE_CHI2)
+        np.testing.assert_array_equal(agreeing, right)
+    # With a baseline between the two views the same matches do tell the scale.
+    assert sim3_information(*scene(np.random.default_rng(21), true_similarity(1.0), 80, 0.0)[:1], CAMERA,
+                            true_similarity(1.0))[6, 6] > 1e-3 * np.abs(information).max()
