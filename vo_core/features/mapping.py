@@ -141,18 +141,21 @@ class FeatureMapper:
     def local_keyframes(self, feature_map: FeatureMap) -> list[FeatureKeyframe]:
         """κ^f of FDMO Fig. 4: the last keyframe, its covisible neighbours (most shared points first), then the
         newest keyframes until there are ``local_keyframes`` (a new keyframe has no points of its own yet, so
-        its neighbourhood is the previous keyframe's)."""
-        newest = feature_map.newest()
-        if newest is None:
+        its neighbourhood is the previous keyframe's). Only the active segment's: an older one (a map the direct
+        half started anew from) has another frame and scale, and joins only by a merge (loop_closing.py); the first
+        keyframe of a new segment has none."""
+        active = feature_map.active_keyframes()
+        if not active:
             return []
         count = self.config.mapping.local_keyframes
-        chosen = [newest.frame_index]
-        chosen += feature_map.covisible_keyframes(newest.frame_index, 1, count - 1)
-        for frame_index in reversed(feature_map.keyframes):
+        chosen = [active[-1].frame_index]
+        chosen += [f for f in feature_map.covisible_keyframes(active[-1].frame_index, 1)
+                   if feature_map.keyframes[f].segment == feature_map.segment][:count - 1]
+        for keyframe in reversed(active):
             if len(chosen) >= count:
                 break
-            if frame_index not in chosen:
-                chosen.append(frame_index)
+            if keyframe.frame_index not in chosen:
+                chosen.append(keyframe.frame_index)
         return [feature_map.keyframes[i] for i in chosen]
 
     # ------------------------------------------------------------------------------------ data association
