@@ -298,3 +298,25 @@ def test_the_feature_map_witnesses_a_new_keyframes_direct_pose():
     assert right.explained > 0.95 and right.found_fraction >= 0.1
     assert collapsed.explained < 0.8 and collapsed.found_fraction >= 0.1
     assert np.linalg.norm(collapsed.T_world_cam[:3, 3] - new.T_world_cam[:3, 3]) < 0.2 * step
+
+
+def test_a_new_segment_does_not_take_the_older_segments_points():
+    """After a new start (loop closing keeps the old map as an older segment, in another frame and scale), the new
+    map's first keyframes see none of the old points, even where the old map would project them right (here the
+    same true poses): the segments join only by a merge's similarity."""
+    frames = [SEQUENCE[i] for i in range(0, 8 * KEYFRAME_STEP, KEYFRAME_STEP)]
+    mapper = FeatureMapper(FeatureConfig(), CAMERA, load_vocabulary())
+    feature_map = FeatureMap()
+    for frame in frames[:6]:
+        mapper.add_keyframe(feature_map, frame.index, frame.timestamp, frame.image, frame.T_world_cam,
+                            median_depth(frame), {frame.index})
+    old_points = set(np.flatnonzero(feature_map.points.alive).tolist())
+    feature_map.begin_segment()
+    reports = [mapper.add_keyframe(feature_map, frame.index + 1000, frame.timestamp, frame.image, frame.T_world_cam,
+                                   median_depth(frame), {frame.index + 1000}) for frame in frames[4:]]
+    assert [report.matched_points for report in reports[:1]] == [0]
+    for report in reports:
+        new = feature_map.keyframes[report.frame_index]
+        assert not old_points & set(new.point_ids[new.point_ids >= 0].tolist())
+        assert all(feature_map.keyframes[f].segment == feature_map.segment
+                   for f in feature_map.covisible_keyframes(report.frame_index, 1))
