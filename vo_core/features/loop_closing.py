@@ -298,7 +298,8 @@ class LoopCloser:
             iterations=self.config.refine_iterations)
         information = sim3_information_on_sightings(into_own.subset(inliers_own), into_loop.subset(inliers_loop),
                                                     self.camera, S_keyframe_loop)
-        return _Refined(S_keyframe_loop, information, int(np.count_nonzero(inliers_own) + np.count_nonzero(inliers_loop)))
+        inlying = int(np.count_nonzero(inliers_own) + np.count_nonzero(inliers_loop))
+        return _Refined(S_keyframe_loop, information, inlying)
 
     def _sightings(self, feature_map: FeatureMap, seers: list[int], seer_reference: FeatureKeyframe,
                    seen_reference: FeatureKeyframe, S_seer_seen: np.ndarray, point_ids: np.ndarray) -> Sim3Sightings:
