@@ -148,9 +148,9 @@ class FeatureMapper:
         if not active:
             return []
         count = self.config.mapping.local_keyframes
+        in_segment = {k.frame_index for k in active}
         chosen = [active[-1].frame_index]
-        chosen += [f for f in feature_map.covisible_keyframes(active[-1].frame_index, 1)
-                   if feature_map.keyframes[f].segment == feature_map.segment][:count - 1]
+        chosen += [f for f in feature_map.covisible_keyframes(active[-1].frame_index, 1) if f in in_segment][:count - 1]
         for keyframe in reversed(active):
             if len(chosen) >= count:
                 break
