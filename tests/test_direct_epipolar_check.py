@@ -1,6 +1,7 @@
 """The start check's independent witness (vo_core/init/epipolar_check.py): the ORB matches between a start's
-keyframes agree with their true motion, contradict a wrong one with the reason, and say nothing where the views
-are too close to tell. The start stays on probation until the witness answers: beside mapping (live input) when it is
+keyframes agree with their true motion, contradict a wrong one with the reason, refuse a wrong rotation and a
+reversed translation where the views are too close for the essential matrix's own motion, and say nothing where
+they share too few matches. The start stays on probation until the witness answers: beside mapping (live input) when it is
 done, offline at the next window optimization."""
 
 from __future__ import annotations
@@ -64,11 +65,50 @@ def test_a_wrong_motion_is_contradicted_with_the_reason(room):
     assert worst["rotation_deg"] > 3.0 or worst["direction_deg"] > 30.0
 
 
-def test_views_too_close_to_tell_say_nothing(room):
-    """Frames 0-2 see the room under well below a degree of parallax: no pair qualifies, whatever the poses."""
-    keyframes = keyframes_at(room, [0, 1, 2], {i: np.eye(4) if i else room[0].ground_truth.poses[0] for i in (0, 1, 2)})
+def moved(room, indices, degrees: float = 0.0, sign: float = 1.0):
+    """The true poses of ``indices``, each one's motion from the first turned by ``degrees`` about the vertical and
+    its translation times ``sign``."""
+    truth = room[0].ground_truth.poses
+    first = truth[indices[0]]
+    turn = so3_exp(np.radians(degrees) * np.array([0.0, 1.0, 0.0]))
+    poses = {indices[0]: first}
+    for index in indices[1:]:
+        T_first_other = np.linalg.inv(first) @ truth[index]
+        poses[index] = first @ se3(turn @ T_first_other[:3, :3], sign * T_first_other[:3, 3])
+    return poses
+
+
+CLOSE = [0, 1, 2]  # the room under well below a degree of parallax: no pair qualifies for the essential motion
+
+
+@pytest.mark.parametrize("degrees, refused", [(0.0, False), (6.0, True)])
+def test_views_too_close_for_the_essential_motion_still_refuse_a_wrong_rotation(room, degrees, refused):
+    """The essential matrix's own motion is noise here (no pair qualifies), but the direct motion, taken as the
+    hypothesis, must explain the matches: a rotation 6 degrees off moves them off their epipolar lines (the drone
+    clip's wrong start at half its frame rate: 20-40 degrees off on pairs under 0.25 degrees of parallax)."""
+    keyframes = keyframes_at(room, CLOSE, moved(room, CLOSE, degrees))
     reason, details = EpipolarCheck(EpipolarCheckConfig()).disagreement(keyframes, room[0].camera)
-    assert reason is None and details["epipolar_pairs"] == 0
+    assert details["epipolar_pairs"] == 0
+    assert (reason is not None) == refused
+    if refused:
+        assert "explains under 50%" in reason and details["epipolar_least_explained"]["explained"] < 0.5
+
+
+def test_a_reversed_translation_leaves_the_matches_unexplained(room):
+    """The epipolar lines do not see the translation's sign: a mirrored start, its camera moving backward, is
+    explained only where the matches' rays meet in front of both cameras, which they do not."""
+    keyframes = keyframes_at(room, KEYFRAMES, moved(room, KEYFRAMES, sign=-1.0))
+    reason, details = EpipolarCheck(EpipolarCheckConfig()).disagreement(keyframes, room[0].camera)
+    assert reason is not None
+    assert details["epipolar_unexplained"] == len(KEYFRAMES) - 1
+
+
+def test_views_that_share_too_few_matches_say_nothing(room):
+    keyframes = keyframes_at(room, KEYFRAMES[:3], wrong_poses(room))
+    for keyframe in keyframes[1:]:
+        keyframe.image = np.zeros_like(keyframe.image)  # nothing to match
+    reason, details = EpipolarCheck(EpipolarCheckConfig()).disagreement(keyframes, room[0].camera)
+    assert reason is None and details["epipolar_pairs"] == 0 and details["epipolar_unexplained"] == 0
 
 
 REPORT = WindowReport(6, 2.0, 1.0, 0.0, 0.0, 100, 1000, 10, np.ones(100, bool), 1.0)  # passes the direct measures
