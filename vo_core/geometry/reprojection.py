@@ -13,7 +13,6 @@ from vo_core.geometry.camera import PinholeCamera
 # Chi-square 95 % quantile with 2 degrees of freedom: the outlier threshold of a monocular observation's
 # squared error in units of its level's variance (ORB-SLAM2 Optimizer.cc: chi2Mono = 5.991; thHuber2D = sqrt of it).
 CHI2_2D_95 = 5.991
-CHI2_1D_95 = 3.841  # the same for a distance of one degree of freedom (an epipolar line's; ORB-SLAM2's CheckFundamental)
 ORB_SCALE_FACTOR = 1.2  # FDMO 4.3 eq. 6: Sf = 1.2, the ORB pyramid's scale factor (ORB-SLAM2's default too)
 
 

@@ -50,7 +50,6 @@ from vo_core.features.orb import Features, OrbExtractor
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import hat, motion_angles_deg, se3_inverse
 from vo_core.geometry.multiview import bearing_angles
-from vo_core.geometry.reprojection import CHI2_1D_95
 from vo_core.geometry.two_view import TwoViewConfig, estimate_models, motion_from_essential
 
 
@@ -215,7 +214,7 @@ def _explained_share(images: _ImageGeometry, T_other_anchor: np.ndarray, config:
     lines_anchor = images.rays_other @ E  # E^T x_other
     algebraic = np.sum(images.rays_other * lines_other, axis=1)
     gradient = lines_other[:, 0] ** 2 + lines_other[:, 1] ** 2 + lines_anchor[:, 0] ** 2 + lines_anchor[:, 1] ** 2
-    bound_px = config.ransac_threshold_px * np.sqrt(CHI2_1D_95)
+    bound_px = config.ransac_threshold_px * np.sqrt(TwoViewConfig.chi2_fundamental)  # ORB-SLAM's 1-DOF T_F
     on_lines = np.abs(algebraic) <= bound_px / images.focal_px * np.sqrt(gradient)
     # Where the rays meet (depth_other x_other = depth_anchor R x_anchor + t), up to a positive factor each.
     turned = images.rays_anchor @ rotation.T  # the anchor's rays in the other camera
