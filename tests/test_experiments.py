@@ -11,7 +11,7 @@ from app.cli import main
 from app.experiments.common import Setup, truth_at_frames
 from app.experiments.frame_drop import Protocol, sweep
 from app.experiments.timing import process_samples, table
-from app.experiments.two_loop import loop_shift, loop_spans, looped_truth
+from app.experiments.two_loop import estimated_trajectory, loop_shift, loop_spans, looped_truth
 from app.pipeline import open_source
 from vo_core.config import DatasetConfig, load_config
 from vo_core.eval import EvalConfig, ground_truth_gap_end, loop_drifts
@@ -185,6 +185,30 @@ def write_tum_mono(root, frames: int = 40, segment: int = 6):
     (root / "camera.txt").write_text("Pinhole 50 50 31.5 23.5 0\n64 48\nnone\n")
     (root / "groundtruthSync.txt").write_text("".join(lines))
     return root
+
+
+def test_the_estimate_is_the_trajectory_files_one_a_refused_starts_poses_taken_back_a_starts_first_frame_posed():
+    """As trajectory.tum: a start found wrong leaves no pose (its frames', its first frame's), and the start that
+    holds poses its first frame once it succeeds."""
+    def posed(index):
+        return FrameResult(index, float(index), se3(np.eye(3), np.array([index, 0.0, 0.0])), tracked=True)
+
+    def started(index, first):
+        result = posed(index)
+        result.events.append(Event(EventKind.INITIALIZATION_SUCCEEDED, index, float(index),
+                                   {"first_frame": first,
+                                    "first_T_world_cam": se3(np.eye(3), np.full(3, float(first))).tolist()}))
+        return result
+
+    def unposed(index):
+        return FrameResult(index, float(index), None, tracked=False)
+
+    refused = unposed(5)
+    refused.events.append(Event(EventKind.INITIALIZATION_REJECTED, 5, 5.0, {"first_frame": 1, "retracted": [3.0, 4.0]}))
+    results = [unposed(1), unposed(2), started(3, 1), posed(4), refused, unposed(6), started(7, 5), posed(8)]
+    estimate = estimated_trajectory(results)
+    assert estimate.timestamps.tolist() == [5.0, 7.0, 8.0]
+    assert estimate.poses[0][:3, 3].tolist() == [5.0, 5.0, 5.0]
 
 
 def test_tum_mono_start_and_end_segments_are_read_as_they_are(tmp_path):

@@ -43,7 +43,7 @@ from app.experiments.common import (
 from app.pipeline import track
 from vo_core.errors import InputError
 from vo_core.eval import Drift, EvalConfig, evaluate, ground_truth_gap_end, loop_drifts
-from vo_core.events import POSE_CORRECTIONS, FrameResult
+from vo_core.events import POSE_CORRECTIONS, EventKind, FrameResult
 from vo_core.trajectory import Trajectory, loop_corrected, write_trajectory
 
 NAME = "two-loop"
@@ -117,10 +117,24 @@ def looped_truth(sequence, shift: float) -> Trajectory:
 
 
 def estimated_trajectory(results: list[FrameResult]) -> Trajectory:
-    """The poses tracking gave, moved by every loop closed meanwhile (with loop closure on)."""
-    posed = [result for result in results if result.T_world_cam is not None]
-    times = np.array([result.timestamp for result in posed])
-    poses = np.array([result.T_world_cam for result in posed]) if posed else np.zeros((0, 4, 4))
+    """The poses tracking gave, as trajectory.tum has them (app/sinks/files.py): a start's first frame posed once the
+    start succeeds, the poses of a start found wrong taken back (they are in a map that is gone: parking played with a
+    gap, benchmarks/map_merge.py, kept a new map's refused start's 12 poses, 1.7-2.0 m off after two right merges),
+    every loop closed or map merged meanwhile applied (with loop closure on)."""
+    timestamp_of = {result.frame_index: result.timestamp for result in results}
+    posed: dict[float, np.ndarray] = {}
+    for result in results:
+        if result.T_world_cam is not None:
+            posed[result.timestamp] = result.T_world_cam
+        for event in result.events:
+            first = timestamp_of.get(event.details.get("first_frame"))
+            if event.kind is EventKind.INITIALIZATION_SUCCEEDED and event.details.get("first_T_world_cam") is not None:
+                posed[first] = np.asarray(event.details["first_T_world_cam"], dtype=float)
+            elif event.kind is EventKind.INITIALIZATION_REJECTED:
+                for timestamp in [*event.details.get("retracted", []), first]:
+                    posed.pop(timestamp, None)
+    times = np.array(sorted(posed))
+    poses = np.array([posed[t] for t in times]) if posed else np.zeros((0, 4, 4))
     for event in (e for result in results for e in result.events if e.kind in POSE_CORRECTIONS):
         poses = loop_corrected(event.details, times, poses)
     return Trajectory(times, poses)

@@ -225,11 +225,14 @@ class FeatureMap:
         if not keyframes:
             empty = np.zeros(0, np.int64)
             return Observations(empty, empty, empty)
-        observed = [k.observed() for k in keyframes]
-        keyframe = np.repeat([k.frame_index for k in keyframes], [len(o) for o in observed]).astype(np.int64)
-        feature = np.concatenate(observed).astype(np.int64)
-        point = np.concatenate([k.point_ids[o] for k, o in zip(keyframes, observed)])
-        return Observations(keyframe, feature, point)
+        # One pass over every keyframe's features side by side (asked for several times a keyframe, over the map).
+        sizes = np.array([len(k.point_ids) for k in keyframes], np.int64)
+        all_points = np.concatenate([k.point_ids for k in keyframes])
+        observed = np.flatnonzero(all_points >= 0)
+        owner = np.repeat(np.arange(len(keyframes)), sizes)[observed]
+        frame_indices = np.array([k.frame_index for k in keyframes], np.int64)
+        first_feature = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        return Observations(frame_indices[owner], observed - first_feature[owner], all_points[observed])
 
     def pixels_of(self, keyframe_of: np.ndarray, feature_of: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pixel (L, 2) and pyramid level (L,) of each observation (keyframe, feature)."""
