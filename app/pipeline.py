@@ -137,12 +137,22 @@ def warm_up(config: Config, camera, num_frames: int = WARM_UP_FRAMES) -> float:
     return time.perf_counter() - started
 
 
-def track(config: Config, camera, frames: Iterable) -> list[FrameResult]:
+@dataclass
+class Tracked:
+    """What ``track`` gives: each frame's result, and the keyframes' poses at the end (a window optimization moves
+    them after their frames were tracked: the final trajectory hangs frames on them, FrameResult.reference_keyframe)."""
+
+    results: list[FrameResult]
+    keyframe_poses: dict[int, np.ndarray]
+
+
+def track(config: Config, camera, frames: Iterable) -> Tracked:
     """A fresh odometry fed ``frames`` in order, without sinks (the experiments, the warm-up); frames the loader
     could not read are skipped, as ``fdmo run`` skips them."""
     odometry = Odometry(config, camera)
     try:
-        return [odometry.track(frame) for frame in frames if frame.image is not None]
+        results = [odometry.track(frame) for frame in frames if frame.image is not None]
+        return Tracked(results, odometry.map_snapshot().keyframe_poses)
     finally:
         odometry.close()
 
@@ -251,8 +261,9 @@ class _Run:
         kernel builds (``kernel_build_s``, the first run's): the frame rate is taken over it, as the progress bar
         and the viser page take theirs."""
         snapshot = self.odometry.map_snapshot()
-        estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_keyframes(snapshot.keyframe_poses)
+        self.files.write_final_poses(snapshot.keyframe_poses)
+        estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_maps(snapshot)
         self.files.write_ground_truth(self._ground_truth_of_the_run())
         metrics = {

@@ -10,10 +10,11 @@ back over the whole folder (the old places seen again). ``0-199,b10,0-199``: cov
 (FDMO recovers from its feature map; nothing starts anew).
 
 For each seed: the frames posed, where a new map began, each merge (its two keyframes apart by ground truth: they
-see one place, which a camera moving forward sees from metres apart; a wrong merge shows in the ATE), and the ATE three ways: the trajectory as written (merged: one
-Sim(3) over all of it), the poses as tracked before any merge moved them (one Sim(3): what the maps' different scales
-cost), and each map aligned on its own (``vo_core.eval.ate_per_map``). The reference (``--clean``, another plan) is
-by default the folder played once through, the ordinary run.
+see one place, which a camera moving forward sees from metres apart; a wrong merge shows in the ATE), and the ATE
+three ways: the trajectory as written (merged: one Sim(3) over all of it), the poses as tracked before any merge
+moved them (one Sim(3): what the maps' different scales cost), and each map aligned on its own
+(``vo_core.eval.ate_per_map``). The reference (``--clean``, another plan) is by default the folder played once
+through, the ordinary run.
 """
 
 from __future__ import annotations
@@ -80,9 +81,10 @@ def played(sequence, parts: list[Part]):
 def run(sequence, parts: list[Part], seed: int) -> dict:
     frames, truth = played(sequence, parts)
     config = load_config(overrides=[f"seed={seed}", "features.loop_closing.enabled=true"])
-    results = track(config, sequence.camera, frames)
+    tracked = track(config, sequence.camera, frames)
+    results = tracked.results
     events = [(r, e) for r in results for e in r.events]
-    merged = estimated_trajectory(results)
+    merged = estimated_trajectory(results, tracked.keyframe_poses)
     tracked = Trajectory(np.array([r.timestamp for r in results if r.T_world_cam is not None]),
                          np.array([r.T_world_cam for r in results if r.T_world_cam is not None]))
     new_maps = [r.timestamp for r, e in events if e.kind in (EventKind.INITIALIZATION_SUCCEEDED,)]

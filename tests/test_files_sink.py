@@ -82,6 +82,45 @@ def test_final_keyframe_poses_replace_the_ones_at_insertion(sink):
     np.testing.assert_allclose(keyframes.poses, [moved[2], moved[5], pose(8)], atol=1e-6)
 
 
+def hung(i: int, keyframe: int, T_ref_cam: np.ndarray) -> FrameResult:
+    """Frame ``i`` tracked against ``keyframe`` (at pose(keyframe)) at ``T_ref_cam`` from it."""
+    frame_result = FrameResult(i, result(i).timestamp, pose(keyframe) @ T_ref_cam, True, i == keyframe)
+    frame_result.reference_keyframe, frame_result.T_ref_cam = keyframe, T_ref_cam
+    return frame_result
+
+
+STEP = se3_exp(np.array([0.05, 0.0, 0.01, 0.0, 0.02, 0.0]))
+MOVED_KEYFRAME = pose(2) @ se3_exp(np.full(6, 0.03))
+
+
+def final_trajectory(out_dir, replayed: bool) -> Trajectory:
+    """Frames 2-6 (2 a keyframe, 3 and 4 tracked against it, 5 posed by the feature map, 6 against a keyframe the
+    run no longer knows; frame 3 played again where ``replayed``), then a window optimization's move of keyframe 2."""
+    files = FilesSink(out_dir)
+    files.begin(load_config())
+    for frame_result in (hung(2, 2, np.eye(4)), hung(3, 2, STEP), hung(4, 2, STEP @ STEP), result(5),
+                         hung(6, 9, STEP), *([hung(3, 2, STEP)] if replayed else [])):
+        files.on_frame(None, frame_result)
+    files.write_final_poses({2: MOVED_KEYFRAME, 5: pose(5)})
+    files.close()
+    return read_trajectory(out_dir / TRAJECTORY_FILE)
+
+
+def test_the_final_trajectory_hangs_each_frame_on_its_keyframes_final_pose_as_dsos_result(tmp_path):
+    """Frames tracked against a keyframe a window optimization moved afterwards move with it (DSO's printResult);
+    a pose that hangs on no direct keyframe (the feature map's), or on one the run no longer knows, stays as given."""
+    final = final_trajectory(tmp_path, replayed=False)
+    np.testing.assert_allclose(final.poses, [MOVED_KEYFRAME, MOVED_KEYFRAME @ STEP, MOVED_KEYFRAME @ STEP @ STEP,
+                                             pose(5), pose(9) @ STEP], atol=1e-6)
+
+
+def test_a_run_that_played_frames_again_keeps_its_poses_as_given(tmp_path):
+    """Keyframes are known by frame number, and a frame played twice may have been a keyframe twice."""
+    as_given = final_trajectory(tmp_path, replayed=True)
+    np.testing.assert_allclose(as_given.poses, [pose(2), pose(2) @ STEP, pose(2) @ STEP @ STEP, pose(5),
+                                                pose(9) @ STEP], atol=1e-6)
+
+
 def test_metrics_and_config_parse_back(sink):
     sink.write_metrics({"frames": np.int64(8), "fps": np.float64(12.5), "evaluation": None})
     assert json.loads((sink.out_dir / METRICS_FILE).read_text()) == {"frames": 8, "fps": 12.5, "evaluation": None}

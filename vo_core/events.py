@@ -111,6 +111,11 @@ class FrameResult:
     divergence_threshold: float | None = None
     scale_ratio: float | None = None
     mean_inverse_depth: float | None = None
+    # The direct keyframe the pose hangs on and the pose relative to it (DSO's trackingRef and camToTrackingRef):
+    # a tracked frame's reference, a keyframe itself (identity). The trajectory's final poses are composed on that
+    # keyframe's final pose; None where the pose came from elsewhere (the feature map, an initializer).
+    reference_keyframe: int | None = None
+    T_ref_cam: np.ndarray | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
 

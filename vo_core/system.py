@@ -575,6 +575,7 @@ class Odometry:
     def _pose_from_features(self, T_world_cam: np.ndarray, inliers: int, result: FrameResult) -> None:
         self.mode = _Mode.FEATURES
         result.T_world_cam = T_world_cam
+        result.reference_keyframe, result.T_ref_cam = None, None  # the feature map's pose hangs on no direct keyframe
         result.tracked = True
         result.num_inliers = inliers
         _emit(result, EventKind.FEATURE_TRACKING, {"inliers": inliers})

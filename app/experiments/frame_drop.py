@@ -129,10 +129,16 @@ def run(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------------------------------------ trials
 
 
+def tracked_results(config, camera, frames) -> list:
+    """Each frame's result as the odometry reported it when it tracked the frame (what the protocol judges)."""
+    return track(config, camera, frames).results
+
+
 def sweep(setup: Setup, truth: dict[int, np.ndarray], method: str, at: int, direction: str, protocol: Protocol,
-          tracker: Callable = track) -> list[dict]:
+          tracker: Callable = tracked_results) -> list[dict]:
     """The trials of one method at one jump frame in one direction: N = step, 2 step, ... until one fails or the
-    frames run out. ``tracker(config, camera, frames)`` runs a fresh odometry (tests give a scripted one)."""
+    frames run out. ``tracker(config, camera, frames)`` runs a fresh odometry and gives its results (tests give a
+    scripted one)."""
     rows = []
     jump = protocol.step
     while (trial := plan(at, jump, direction, protocol, len(setup.sequence), truth)) is not None:

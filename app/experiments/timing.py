@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> None:
     for method, config in setup.configs.items():
         setup.say(f"{method}: {len(setup.sequence)} frames")
         track(config, setup.sequence.camera, setup.sequence.cut(end=WARMUP_FRAMES))
-        results = track(config, setup.sequence.camera, setup.sequence)
+        results = track(config, setup.sequence.camera, setup.sequence).results
         samples[method] = process_samples(method, results)
         rows += [{"method": method, "frame": result.frame_index, "is_keyframe": result.is_keyframe,
                   **result.timings_ms} for result in results]

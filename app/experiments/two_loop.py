@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> None:
     rows, estimates = [], {}
     for method, method_config in setup.configs.items():
         setup.say(f"{method}: {LOOPS} x {len(sequence)} frames")
-        results = track(method_config, sequence.camera, looped_frames(sequence, shift))
-        estimate = estimated_trajectory(results)
+        tracked = track(method_config, sequence.camera, looped_frames(sequence, shift))
+        results = tracked.results
+        estimate = estimated_trajectory(results, tracked.keyframe_poses)
         write_trajectory(setup.out_dir / f"trajectory_{method}.tum", estimate, "tum")
         drifts = loop_drifts(estimate, truth, spans, config)
         rows += [loop_row(method, loop, results, estimate, truth, span, drift, whole)
@@ -116,16 +117,21 @@ def looped_truth(sequence, shift: float) -> Trajectory:
     return Trajectory(np.concatenate([times + loop * shift for loop in range(LOOPS)]), np.tile(poses, (LOOPS, 1, 1)))
 
 
-def estimated_trajectory(results: list[FrameResult]) -> Trajectory:
-    """The poses tracking gave, as trajectory.tum has them (app/sinks/files.py): a start's first frame posed once the
-    start succeeds, the poses of a start found wrong taken back (they are in a map that is gone: parking played with a
-    gap, benchmarks/map_merge.py, kept a new map's refused start's 12 poses, 1.7-2.0 m off after two right merges),
-    every loop closed or map merged meanwhile applied (with loop closure on)."""
+def estimated_trajectory(results: list[FrameResult],
+                         keyframe_poses: dict[int, np.ndarray] | None = None) -> Trajectory:
+    """The poses tracking gave, as trajectory.tum has them (app/sinks/files.py): each hung on the final pose of the
+    direct keyframe it was tracked against where ``keyframe_poses`` has it (FilesSink.write_final_poses), a start's
+    first frame posed once the start succeeds, the poses of a start found wrong taken back (they are in a map that is
+    gone: parking played with a gap, benchmarks/map_merge.py, kept a new map's refused start's 12 poses, 1.7-2.0 m
+    off after two right merges), every loop closed or map merged meanwhile applied (with loop closure on)."""
     timestamp_of = {result.frame_index: result.timestamp for result in results}
     posed: dict[float, np.ndarray] = {}
+    final = keyframe_poses or {}
     for result in results:
         if result.T_world_cam is not None:
-            posed[result.timestamp] = result.T_world_cam
+            hung = result.reference_keyframe in final
+            posed[result.timestamp] = (final[result.reference_keyframe] @ result.T_ref_cam if hung
+                                       else result.T_world_cam)
         for event in result.events:
             first = timestamp_of.get(event.details.get("first_frame"))
             if event.kind is EventKind.INITIALIZATION_SUCCEEDED and event.details.get("first_T_world_cam") is not None:

@@ -59,6 +59,10 @@ class FilesSink:
         self._trajectory: PoseLines | None = None
         self._keyframes: PoseLines | None = None
         self._retracted: set[float] = set()  # timestamps whose poses the odometry took back
+        # timestamp -> (direct keyframe, T_ref_cam) the frame's latest pose hangs on (FrameResult.reference_keyframe)
+        self._anchors: dict[float, tuple[int, np.ndarray]] = {}
+        self._replayed = False  # a frame was played again (a backward jump): a frame number may be a keyframe twice
+        self._latest_frame_time = -np.inf
         self._corrections: list[dict[str, Any]] = []  # POSE_CORRECTIONS events' details, in order: they move poses
 
     def begin(self, config: Config) -> None:
@@ -66,6 +70,8 @@ class FilesSink:
         self._close_files()
         self._timestamps.clear()
         self._retracted.clear()
+        self._anchors.clear()
+        self._replayed, self._latest_frame_time = False, -np.inf
         self._corrections.clear()
         self.out_dir.mkdir(parents=True, exist_ok=True)
         # buffering=1: line-buffered text, every complete line reaches the OS at once.
@@ -84,7 +90,13 @@ class FilesSink:
     def on_frame(self, frame: Any, result: FrameResult) -> None:
         self._timestamps[result.frame_index] = result.timestamp
         self._files[FRAMES_FILE].write(frames_line(result) + "\n")
+        self._replayed |= result.timestamp <= self._latest_frame_time
+        self._latest_frame_time = max(self._latest_frame_time, result.timestamp)
         self._trajectory.record(result.timestamp, result.T_world_cam)
+        if result.T_world_cam is not None and result.reference_keyframe is not None:
+            self._anchors[result.timestamp] = (result.reference_keyframe, result.T_ref_cam)
+        else:
+            self._anchors.pop(result.timestamp, None)
         if result.T_world_cam is not None:
             self._retracted.discard(result.timestamp)  # posed again (a replayed frame)
         if result.is_keyframe:
@@ -164,6 +176,26 @@ class FilesSink:
             poses = loop_corrected(details, times, poses)
         self._keyframes.replace(dict(zip(times.tolist(), poses)))
 
+    def write_final_poses(self, keyframe_poses: dict[int, np.ndarray]) -> None:
+        """trajectory.tum at the end, as DSO's result (printResult) and ORB-SLAM2's (SaveTrajectoryTUM) are written:
+        each pose that hangs on a direct keyframe, that keyframe's latest pose (``keyframe_poses``: a window
+        optimization moves it after the frame was tracked) times the frame's pose relative to it, moved by every loop
+        closed since (as keyframes.tum); the other poses as they were given. A young map's first frames, tracked
+        before its window settled its scale, move most (KITTI's first frames: their steps at 85 % of the later
+        scale as tracked). A run that played frames again keeps the poses as given: its keyframes are known by
+        frame number, and a frame played twice may have been a keyframe twice."""
+        if self._replayed:
+            return
+        anchored = sorted(t for t, (keyframe, _) in self._anchors.items()
+                          if keyframe in keyframe_poses and t in self._trajectory)
+        if not anchored:
+            return
+        times = np.array(anchored)
+        poses = np.array([keyframe_poses[self._anchors[t][0]] @ self._anchors[t][1] for t in anchored])
+        for details in self._corrections:
+            poses = loop_corrected(details, times, poses)
+        self._trajectory.update(dict(zip(anchored, poses)))
+
     def write_ground_truth(self, ground_truth: Trajectory | None) -> None:
         """groundtruth.tum: the poses the run is evaluated against (``fdmo plot`` and ``fdmo eval`` read it)."""
         self._write_or_remove(GROUND_TRUTH_FILE, ground_truth is not None and len(ground_truth) > 0,
@@ -236,9 +268,17 @@ class PoseLines:
 
     def replace(self, poses: dict[float, np.ndarray]) -> None:
         """The whole file anew: ``poses`` by timestamp."""
-        self._lines = {timestamp: (pose, tum_line(timestamp, pose)) for timestamp, pose in poses.items()}
-        self._latest = max(poses, default=-np.inf)
+        self._lines = {}
+        self.update(poses)
+
+    def update(self, poses: dict[float, np.ndarray]) -> None:
+        """The lines of ``poses``' timestamps anew (or added), the others kept."""
+        self._lines.update({timestamp: (pose, tum_line(timestamp, pose)) for timestamp, pose in poses.items()})
+        self._latest = max(self._lines, default=-np.inf)
         self._rewrite()
+
+    def __contains__(self, timestamp: float) -> bool:
+        return timestamp in self._lines
 
     def correct(self, correct) -> None:
         """Every pose anew, ``correct(timestamps, poses)`` (a loop closure moved them)."""

@@ -399,6 +399,7 @@ class DirectOdometry:
         result."""
         reference, best = tracking.reference, tracking.result
         result.T_world_cam = tracking.T_world_cam
+        result.reference_keyframe, result.T_ref_cam = reference.frame_index, se3_inverse(best.T_frame_ref)
         result.tracked = True
         if self.on_probation:
             self.start_check.posed(frame.timestamp)
@@ -529,7 +530,7 @@ class DirectOdometry:
         keyframe.immature = self._new_immature_points(frame.pyramid)
         self.keyframe_poses[keyframe.frame_index] = keyframe.T_world_cam
         self._set_tracking_reference(keyframe)
-        result.T_world_cam = keyframe.T_world_cam.copy()
+        _posed_as_keyframe(result, keyframe)
         result.tracked = True
         result.is_keyframe = True
         result.events.append(_event(
@@ -720,7 +721,7 @@ class DirectOdometry:
         history = self.history  # with a mapping thread, tracking may have gone on: then it is not the last frame
         if history and history[-1].timestamp == newest.timestamp:
             history[-1] = replace(history[-1], T_world_cam=newest.T_world_cam, affine=newest.affine)
-        result.T_world_cam = newest.T_world_cam.copy()
+        _posed_as_keyframe(result, newest)
         result.timings_ms["window"] = report.ms
         result.events.append(_event(EventKind.WINDOW_OPTIMIZED, frame, report.as_details()))
         self._watch_scale(frame, result)
@@ -946,6 +947,13 @@ class DirectOdometry:
 
 def _ms_since(start: float) -> float:
     return (time.perf_counter() - start) * 1000.0
+
+
+def _posed_as_keyframe(result: FrameResult, keyframe: Keyframe) -> None:
+    """The frame is ``keyframe``: it takes the keyframe's pose, and hangs on it (the trajectory's final pose is the
+    keyframe's final one)."""
+    result.T_world_cam = keyframe.T_world_cam.copy()
+    result.reference_keyframe, result.T_ref_cam = keyframe.frame_index, np.eye(4)
 
 
 def _event(kind: EventKind, frame, details: dict) -> Event:
