@@ -152,7 +152,7 @@ def track(config: Config, camera, frames: Iterable) -> Tracked:
     odometry = Odometry(config, camera)
     try:
         results = [odometry.track(frame) for frame in frames if frame.image is not None]
-        return Tracked(results, odometry.map_snapshot().keyframe_poses)
+        return Tracked(results, odometry.final_keyframe_poses())
     finally:
         odometry.close()
 
@@ -262,7 +262,7 @@ class _Run:
         and the viser page take theirs."""
         snapshot = self.odometry.map_snapshot()
         self.files.write_keyframes(snapshot.keyframe_poses)
-        self.files.write_final_poses(snapshot.keyframe_poses)
+        self.files.write_final_poses(self.odometry.final_keyframe_poses())
         estimate = self.files.estimate()  # trajectory.tum: metrics.json's ATE is what fdmo eval gives on it
         self.files.write_maps(snapshot)
         self.files.write_ground_truth(self._ground_truth_of_the_run())

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from vo_core.features.config import FeatureConfig
-from vo_core.features.feature_map import NO_POINT, FeatureMap
+from vo_core.features.feature_map import NO_POINT, FeatureKeyframe, FeatureMap
 from vo_core.features.feature_odometry import FeatureOdometry
 from vo_core.features.mapping import FeatureMapper, seen_under_parallax
-from vo_core.features.vocabulary import load_vocabulary
-from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.features.orb import Features
+from vo_core.features.vocabulary import BowVector, load_vocabulary
+from vo_core.geometry.lie import se3_exp, se3_inverse, transform_points
 from vo_core.synthetic import make_sequence
 
 KEYFRAME_STEP = 4  # frames between keyframes: DSO's keyframe rate on smooth motion
@@ -320,3 +321,26 @@ def test_a_new_segment_does_not_take_the_older_segments_points():
         assert not old_points & set(new.point_ids[new.point_ids >= 0].tolist())
         assert all(feature_map.keyframes[f].segment == feature_map.segment
                    for f in feature_map.covisible_keyframes(report.frame_index, 1))
+
+
+def test_a_culled_keyframe_ends_on_its_parents_final_pose_up_a_chain_of_culls():
+    """ORB-SLAM2's spanning tree: a culled keyframe keeps its pose relative to the keyframe that shared the most
+    points with it, and follows that one's final pose (itself culled later: its own parent's)."""
+    poses = [se3_exp(np.array([0.3 * k, 0.0, 0.1 * k, 0.0, 0.05 * k, 0.0])) for k in range(3)]
+    feature_map = FeatureMap()
+    for frame_index, ids in enumerate(([0, NO_POINT, NO_POINT], [0, 1, 2], [0, 1, 2])):
+        features = Features(np.zeros((3, 2)), np.zeros(3, np.int64), np.zeros(3), np.zeros(3, np.float32),
+                            np.zeros((3, 32), np.uint8))
+        feature_map.add_keyframe(FeatureKeyframe(frame_index, frame_index, float(frame_index), poses[frame_index],
+                                                 features, BowVector.empty(), np.zeros(3, np.int64),
+                                                 point_ids=np.array(ids, np.int64)))
+    feature_map.points.add(np.zeros((3, 3)), np.zeros((3, 32), np.uint8), 0, np.ones(3), np.zeros(3, np.int64))
+    feature_map.remove_keyframe(1)  # shares 3 points with keyframe 2, 1 with keyframe 0
+    moved = se3_exp(np.array([0.0, 0.2, 0.0, 0.1, 0.0, 0.0]))
+    feature_map.keyframes[2].T_world_cam = moved @ poses[2]
+    np.testing.assert_allclose(feature_map.final_poses()[1], moved @ poses[1], atol=1e-12)
+    feature_map.remove_keyframe(2)  # now shares a point with keyframe 0 only
+    feature_map.keyframes[0].T_world_cam = moved @ moved @ poses[0]
+    final = feature_map.final_poses()
+    np.testing.assert_allclose(final[2], moved @ moved @ moved @ poses[2], atol=1e-12)
+    np.testing.assert_allclose(final[1], moved @ moved @ moved @ poses[1], atol=1e-12)

@@ -198,6 +198,15 @@ class Odometry:
         self.flush()
         return self._snapshot()
 
+    def final_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """The keyframes' poses as the run ends, which the final trajectory hangs each frame on
+        (FrameResult.reference_keyframe): the direct keyframes', or a front end's (the features method's culled
+        keyframes included)."""
+        self.flush()
+        if self.front_end is not None:
+            return self.front_end.final_keyframe_poses()
+        return dict(self.direct.keyframe_poses)
+
     def flush(self) -> None:
         """With a mapping thread: map what is queued and pass on what that produced, so that the maps and what the
         sinks heard are complete (before a snapshot, at the end of a pass). Synchronously, the feature keyframe grown

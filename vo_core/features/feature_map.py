@@ -156,6 +156,9 @@ class FeatureMap:
         # new segment in its own frame and scale, and the older ones are kept until a place seen in both merges them
         # (loop_closing.py); until then nothing but the loop closer looks at them.
         self.segment = 0
+        # A culled keyframe's place in the final trajectory (ORB-SLAM2's spanning tree): the keyframe that shared the
+        # most points with it when it left, and its pose relative to that one (T_parent_culled).
+        self.culled_parents: dict[int, tuple[int, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -171,12 +174,32 @@ class FeatureMap:
     def remove_keyframe(self, frame_index: int) -> None:
         """A culled keyframe takes its observations along; points left with fewer than two observations die
         (a point needs two views to have been triangulated, and one to be found again)."""
+        shared = self.covisibility(frame_index)
         keyframe = self.keyframes.pop(frame_index)
+        if shared:
+            parent = self.keyframes[max(shared, key=shared.get)]
+            T_parent_culled = se3_inverse(parent.T_world_cam) @ keyframe.T_world_cam
+            self.culled_parents[frame_index] = (parent.frame_index, T_parent_culled)
         self.index.remove(frame_index)
         orphans = keyframe.point_ids[keyframe.point_ids >= 0]
         counts = self.observation_counts(orphans)
         self.points.alive[orphans[counts < 2]] = False
         self._forget_dead()
+
+    def final_poses(self) -> dict[int, np.ndarray]:
+        """Every keyframe's pose as the map ends: the kept ones' own, a culled one's on its parent's final pose (ORB-
+        SLAM2's SaveTrajectoryTUM follows the same links), where the chain of parents reaches a kept keyframe."""
+        final = {frame_index: keyframe.T_world_cam for frame_index, keyframe in self.keyframes.items()}
+        for frame_index in self.culled_parents:
+            chain = []  # up the parents to one whose final pose is known (a parent was kept when its child left)
+            while frame_index not in final and frame_index in self.culled_parents and frame_index not in chain:
+                chain.append(frame_index)
+                frame_index = self.culled_parents[frame_index][0]
+            if frame_index in final:
+                for culled in reversed(chain):
+                    parent, T_parent_culled = self.culled_parents[culled]
+                    final[culled] = final[parent] @ T_parent_culled
+        return final
 
     def begin_segment(self) -> None:
         """The direct map starts anew at a new scale: what the map holds becomes an older segment."""

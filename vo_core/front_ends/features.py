@@ -48,7 +48,7 @@ from vo_core.features.orb_initializer import OrbInitializer, TwoFrameMap
 from vo_core.features.recovery import FrameFeatures, Relocalizer
 from vo_core.features.vocabulary import load_vocabulary
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import transform_points
+from vo_core.geometry.lie import se3_inverse, transform_points
 
 # ORB-SLAM2 Track: a frame within 2 frames of a relocalization has no velocity yet (mnLastRelocFrameId + 2).
 FRAMES_WITHOUT_VELOCITY_AFTER_RELOCALIZATION = 2
@@ -139,6 +139,10 @@ class FeatureOnlyOdometry:
             feature_points_world=points.position[points.alive].copy(),
             keyframe_poses={k.frame_index: k.T_world_cam.copy() for k in self.map.keyframes.values()},
         )
+
+    def final_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """The keyframes' poses the final trajectory hangs frames on, the culled ones' included (FeatureMap)."""
+        return self.map.final_poses()
 
     # ------------------------------------------------------------------------------------ initialization
 
@@ -380,6 +384,10 @@ class FeatureOnlyOdometry:
         matched = current.matched
         result = FrameResult(self._frame.index, self._frame.timestamp, current.T_world_cam.copy(), tracked=True,
                              is_keyframe=is_keyframe, num_inliers=inliers, points_2d=features.uv[matched].copy())
+        reference = self.map.keyframes.get(current.reference_keyframe)
+        if reference is not None:  # ORB-SLAM2's SaveTrajectoryTUM: the pose relative to its reference keyframe
+            result.reference_keyframe = reference.frame_index
+            result.T_ref_cam = se3_inverse(reference.T_world_cam) @ result.T_world_cam
         if last is not None:
             shared, in_current, in_last = np.intersect1d(current.point_ids[matched], last.point_ids[last.matched],
                                                          return_indices=True)
