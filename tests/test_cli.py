@@ -112,6 +112,9 @@ class ScriptedFrontEnd:
         return MapSnapshot(self.snapshot.direct_points_world, self.snapshot.direct_inverse_depths,
                            self.snapshot.feature_points_world, dict(self.keyframes))
 
+    def final_keyframe_poses(self) -> dict[int, np.ndarray]:
+        return dict(self.keyframes)
+
 
 @pytest.fixture
 def scripted(monkeypatch):

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Callable, Protocol
 
+import numpy as np
+
 from vo_core.errors import InputError
 from vo_core.events import FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
@@ -30,6 +32,11 @@ class FrontEnd(Protocol):
     def process(self, frame) -> FrameResult: ...
 
     def map_snapshot(self) -> MapSnapshot: ...
+
+    def final_keyframe_poses(self) -> dict[int, np.ndarray]:
+        """The keyframes' poses as the run ends, by frame index: the final trajectory hangs each frame that names
+        one (FrameResult.reference_keyframe) on it."""
+        ...
 
 
 def make_front_end(config: Config, camera: PinholeCamera,
