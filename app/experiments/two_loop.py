@@ -25,6 +25,7 @@ loop 2 dashed) and table.md.
 from __future__ import annotations
 
 import argparse
+import tempfile
 
 import numpy as np
 
@@ -41,10 +42,12 @@ from app.experiments.common import (
     write_csv,
 )
 from app.pipeline import track
+from app.sinks.files import FilesSink
+from vo_core.config import load_config
 from vo_core.errors import InputError
 from vo_core.eval import Drift, EvalConfig, evaluate, ground_truth_gap_end, loop_drifts
-from vo_core.events import POSE_CORRECTIONS, EventKind, FrameResult
-from vo_core.trajectory import Trajectory, loop_corrected, write_trajectory
+from vo_core.events import FrameResult
+from vo_core.trajectory import Trajectory, write_trajectory
 
 NAME = "two-loop"
 HELP = "FDMO sec. 5.3.1: the sequence played twice, TUM monoVO drifts at the end of each loop"
@@ -119,31 +122,20 @@ def looped_truth(sequence, shift: float) -> Trajectory:
 
 def estimated_trajectory(results: list[FrameResult],
                          keyframe_poses: dict[int, np.ndarray] | None = None) -> Trajectory:
-    """The poses tracking gave, as trajectory.tum has them (app/sinks/files.py): each hung on the final pose of the
-    direct keyframe it was tracked against where ``keyframe_poses`` has it (FilesSink.write_final_poses), a start's
-    first frame posed once the start succeeds, the poses of a start found wrong taken back (they are in a map that is
-    gone: parking played with a gap, benchmarks/map_merge.py, kept a new map's refused start's 12 poses, 1.7-2.0 m
-    off after two right merges), every loop closed or map merged meanwhile applied (with loop closure on)."""
-    timestamp_of = {result.frame_index: result.timestamp for result in results}
-    posed: dict[float, np.ndarray] = {}
-    final = keyframe_poses or {}
-    for result in results:
-        if result.T_world_cam is not None:
-            hung = result.reference_keyframe in final
-            posed[result.timestamp] = (final[result.reference_keyframe] @ result.T_ref_cam if hung
-                                       else result.T_world_cam)
-        for event in result.events:
-            first = timestamp_of.get(event.details.get("first_frame"))
-            if event.kind is EventKind.INITIALIZATION_SUCCEEDED and event.details.get("first_T_world_cam") is not None:
-                posed[first] = np.asarray(event.details["first_T_world_cam"], dtype=float)
-            elif event.kind is EventKind.INITIALIZATION_REJECTED:
-                for timestamp in [*event.details.get("retracted", []), first]:
-                    posed.pop(timestamp, None)
-    times = np.array(sorted(posed))
-    poses = np.array([posed[t] for t in times]) if posed else np.zeros((0, 4, 4))
-    for event in (e for result in results for e in result.events if e.kind in POSE_CORRECTIONS):
-        poses = loop_corrected(event.details, times, poses)
-    return Trajectory(times, poses)
+    """The poses tracking gave, as ``fdmo run`` writes trajectory.tum: the same results through the same FilesSink
+    (a start's first frame posed once it succeeds, a refused start's poses taken back, loops and merges applied, each
+    frame hung on its keyframe's final pose where ``keyframe_poses`` has it), in a folder of its own that goes."""
+    with tempfile.TemporaryDirectory() as folder:
+        files = FilesSink(folder)
+        files.begin(load_config())
+        for result in results:
+            for event in result.events:
+                files.on_event(event)
+            files.on_frame(None, result)
+        files.write_final_poses(keyframe_poses or {})
+        estimate = files.estimate()
+        files.close()
+    return estimate
 
 
 def loop_row(method: str, loop: int, results: list[FrameResult], estimate: Trajectory, truth: Trajectory,

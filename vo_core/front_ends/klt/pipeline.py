@@ -78,12 +78,12 @@ class KltOdometry:
     def map_snapshot(self) -> MapSnapshot:
         return MapSnapshot(
             feature_points_world=self.landmarks.world_points.copy(),
-            keyframe_poses=self.final_keyframe_poses(),
+            keyframe_poses={index: T.copy() for index, T in self.keyframe_poses.items()},
         )
 
     def final_keyframe_poses(self) -> dict[int, np.ndarray]:
-        """The baseline's poses are never refined: its frames hang on no keyframe."""
-        return {index: T.copy() for index, T in self.keyframe_poses.items()}
+        """None: the baseline's poses are never refined, and its frames hang on no keyframe."""
+        return {}
 
     # ------------------------------------------------------------------------------------------ bootstrap
 
