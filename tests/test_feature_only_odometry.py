@@ -116,6 +116,29 @@ def test_a_start_the_witness_refuses_is_taken_back(smooth, monkeypatch):
     assert rejected[0].details["epipolar_disagreeing"] == 3  # the witness's measures join the event
 
 
+def test_a_young_map_lost_is_taken_back_with_its_poses(smooth):
+    """The view goes dark (a little sensor noise) two keyframes after the start: the map is lost with 4 keyframes,
+    fewer than ORB-SLAM2 keeps when lost, so it starts over, and every pose it gave is retracted, as ORB-SLAM2's reset
+    clears its trajectory with the map (the first frame's by ``first_frame``)."""
+    sequence, clean, _ = smooth
+    frames = list(sequence)
+    started = next(e for r in clean for e in r.events if e.kind is EventKind.INITIALIZATION_SUCCEEDED)
+    keyframes_after = [r.frame_index for r in clean if r.is_keyframe and r.frame_index > started.frame_index]
+    dark_from = keyframes_after[1] + 1
+    rng = np.random.default_rng(0)
+    dark = [dataclasses.replace(f, image=rng.integers(0, 3, f.image.shape, dtype=np.uint8))
+            for f in frames[dark_from:dark_from + 3]]
+    results, _ = run(frames[:dark_from] + dark, sequence.camera)
+    lost_at = next(r.frame_index for r in results if EventKind.TRACKING_FAILED in kinds([r]))
+    rejected = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_REJECTED]
+    assert lost_at == dark_from and len(rejected) == 1 and rejected[0].frame_index == lost_at
+    assert "lost with few keyframes" in rejected[0].details["reason"] and rejected[0].details["keyframes"] < 6
+    assert rejected[0].details["first_frame"] == started.details["first_frame"]
+    assert rejected[0].details["retracted"] == [r.timestamp for r in results[started.frame_index:lost_at]]
+    assert all(r.T_world_cam is not None for r in results[started.frame_index:lost_at])
+    assert EventKind.REINITIALIZATION in kinds(results[lost_at:lost_at + 1])
+
+
 def test_same_input_same_trajectory(smooth):
     sequence, results, _ = smooth
     again, _ = run(list(sequence)[:30], sequence.camera)

@@ -14,8 +14,9 @@ Per frame:
         frame: ORB-SLAM2's two threads, one after the other. ORB-SLAM2 takes keyframes only while local mapping
         is idle; here, once the camera time its local mapping would have been busy has passed
     lost: no pose; while the map has at most 5 keyframes it starts over (ORB-SLAM2's reset), at the last pose
-        and the old map's scene depth as unit; otherwise every frame tries the global relocalization, and after 3 s
-        without one a new map starts there in the same way (ORB-SLAM3)
+        and the old map's scene depth as unit, and the poses given in it are taken back (ORB-SLAM2's reset clears the
+        trajectory with the map); otherwise every frame tries the global relocalization, and after 3 s without one
+        a new map starts there in the same way (ORB-SLAM3)
 
 The ORB extractor, the vocabulary, the feature map and its covisibility, the matchers, the pose-only
 optimization, the relocalization and the triangulation are the ones FDMO's feature half uses (vo_core/features/);
@@ -61,15 +62,22 @@ class State(Enum):
 
 
 @dataclass
-class StartProbation:
-    """A new map until its start has proven itself: its keyframes' images in mapping order, for the witness, and the
-    frames posed in it (taken back if the witness refuses the start)."""
+class YoungMap:
+    """A map until it is established (its start proven by the witness, and as many keyframes as a map that is not
+    reset when lost): its start's two frames and the frames posed in it, taken back where the start is refused or the
+    map is lost while young."""
 
-    witness: object  # an EpipolarCheck (vo_core/init): prepare, disagreement, close
     first_frame: int
     second_frame: int
-    images: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe frame index -> image
     posed_timestamps: list[float] = field(default_factory=list)
+
+
+@dataclass
+class StartProbation:
+    """A new map until its start has proven itself: its keyframes' images in mapping order, for the witness."""
+
+    witness: object  # an EpipolarCheck (vo_core/init): prepare, disagreement, close
+    images: dict[int, np.ndarray] = field(default_factory=dict)  # keyframe frame index -> image
 
     def views(self, feature_map: FeatureMap) -> list:
         """The probation keyframes still in the map as the witness reads them: frame index, image, pose now."""
@@ -85,6 +93,7 @@ class FeatureOnlyOdometry:
         self.seed = seed
         self.start_witness = start_witness  # a fresh witness for each new map's probation (None: none)
         self.probation: StartProbation | None = None
+        self.young: YoungMap | None = None  # the map while its poses may still be taken back
         self.reference_image: np.ndarray | None = None  # the start's reference frame's image (the first keyframe's)
         vocabulary = load_vocabulary(config.vocabulary)
         self.vocabulary = vocabulary
@@ -188,11 +197,10 @@ class FeatureOnlyOdometry:
         self.state = State.OK
         self.posed = [(start.first_timestamp, first.T_world_cam)]
         self._map_keyframe(second, tracked)
+        self.young = YoungMap(start.first_index, frame.index, [frame.timestamp])
         witness = self.start_witness()
         if witness is not None:
-            self.probation = StartProbation(witness, start.first_index, frame.index,
-                                            {start.first_index: self.reference_image, frame.index: frame.image},
-                                            [frame.timestamp])
+            self.probation = StartProbation(witness, {start.first_index: self.reference_image, frame.index: frame.image})
             witness.prepare(self.probation.views(self.map), self.camera)
         self._moved_to(tracked)
         return self._pose_result(tracked, None, is_keyframe=True, inliers=len(ids))
@@ -218,10 +226,14 @@ class FeatureOnlyOdometry:
             keyframe = self._new_keyframe(current.frame_index, current.timestamp, current.features,
                                           current.T_world_cam, current.point_ids.copy())
             self._map_keyframe(keyframe, current)
+        if self.young is not None:
+            self.young.posed_timestamps.append(current.timestamp)
         if self.probation is not None:
             refused = self._check_start(current, keyframe)
             if refused is not None:
                 return refused
+        if self.probation is None and not self._young_by_size:
+            self.young = None  # established: its poses stay, whatever follows
         self._moved_to(current)
         return self._pose_result(current, last, is_keyframe=keyframe is not None, inliers=outcome.inliers)
 
@@ -271,7 +283,6 @@ class FeatureOnlyOdometry:
         at the last probation keyframe the witness compares them with the poses the map gives them now. Returns the
         frame's result where the start is taken back."""
         probation = self.probation
-        probation.posed_timestamps.append(current.timestamp)
         if keyframe is None:
             return None
         probation.images[keyframe.frame_index] = self._frame.image
@@ -281,24 +292,34 @@ class FeatureOnlyOdometry:
             return None
         self.probation = None
         reason, measures = probation.witness.disagreement(views, self.camera)
-        return None if reason is None else self._take_back_start(probation, reason, measures)
+        return None if reason is None else self._take_back_start(reason, measures)
 
-    def _take_back_start(self, probation: StartProbation, reason: str, measures: dict) -> FrameResult:
-        """The start failed its probation: the map goes, the poses given in it are retracted (the first frame's with
-        ``first_frame``), and the start begins again from this frame, placed where the refused one was."""
-        self._emit(EventKind.INITIALIZATION_REJECTED, reason=reason, initializer="orb",
-                   first_frame=probation.first_frame, second_frame=probation.second_frame,
-                   keyframes=len(probation.images), **measures,
-                   retracted=[t for t in probation.posed_timestamps if t != self._frame.timestamp])
+    def _take_back_start(self, reason: str, measures: dict) -> FrameResult:
+        """The start failed its probation: the map goes, its poses are taken back (``_retract_young_map``), and the
+        start begins again from this frame, placed where the refused one was."""
+        self._retract_young_map(reason, measures)
         self._forget_map()
         with self._stage("orb"):
             features = self._extract_for_start(self._frame.image)
         return self._initialize(self._frame, features)
 
+    @property
+    def _young_by_size(self) -> bool:
+        """Whether the map has fewer keyframes than one that is not reset when lost (ORB-SLAM2: at most 5)."""
+        return len(self.map) < self.config.odometry.initialization.reset_when_lost_below_keyframes
+
+    def _retract_young_map(self, reason: str, measures: dict) -> None:
+        """The young map's start is refused: the poses given in it are retracted (the first frame's with
+        ``first_frame``; this frame's is not one of them: it starts the next map or gets none)."""
+        young = self.young
+        self._emit(EventKind.INITIALIZATION_REJECTED, reason=reason, initializer="orb", first_frame=young.first_frame,
+                   second_frame=young.second_frame, keyframes=len(self.map), **measures,
+                   retracted=[t for t in young.posed_timestamps if t != self._frame.timestamp])
+
     def _forget_map(self) -> None:
         if self.probation is not None:
             self.probation.witness.close()
-        self.probation = None
+        self.probation, self.young = None, None
         self.map = FeatureMap()
         self.local_mapper.reset()
         self.initializer.reset()
@@ -308,13 +329,18 @@ class FeatureOnlyOdometry:
     # ------------------------------------------------------------------------------------ lost, relocalized
 
     def _lost(self, frame, current: TrackedFrame, outcome: TrackingOutcome) -> FrameResult:
-        """No pose. A young map starts over (ORB-SLAM2 resets with at most 5 keyframes); an established one waits
-        for the relocalization."""
+        """No pose. A young map starts over (ORB-SLAM2 resets with at most 5 keyframes), and its poses are taken
+        back: ORB-SLAM2's Tracking::Reset clears the trajectory with the map (a start that held for a few keyframes
+        and lost them proved nothing; TUM fr1/desk, seed 0: 11 frames of a map begun at frame 35 and lost at 46, at
+        a scale of their own). An established map waits for the relocalization."""
         self._emit(EventKind.TRACKING_FAILED, reason=outcome.reason, stage=outcome.stage, keyframes=len(self.map))
-        if len(self.map) >= self.config.odometry.initialization.reset_when_lost_below_keyframes:
+        if not self._young_by_size:
             self.state, self.lost_at = State.LOST, frame.timestamp
             return self._no_pose(current.features.features.uv)
-        return self._start_over(frame, current.features, reason="the map was lost with few keyframes")
+        reason = "the map was lost with few keyframes"
+        if self.young is not None:
+            self._retract_young_map(f"{reason} (ORB-SLAM2's reset: the map and the poses given in it go)", {})
+        return self._start_over(frame, current.features, reason=reason)
 
     def _start_over(self, frame, features: FrameFeatures, reason: str) -> FrameResult:
         """A new map, begun from this frame where the camera was last posed and at the old map's scene depth."""
