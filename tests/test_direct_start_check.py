@@ -40,6 +40,57 @@ def test_too_little_parallax_is_refused_with_the_reason():
     assert any("parallax" in e.details["reason"] or "winner" in e.details["reason"] for e in failures)
 
 
+class DivergedStart:
+    """An initializer whose optimization diverged and hands over what is left: no point, a pose that is not finite
+    (DSO's coarse initializer on the drone clip at a third of its frame rate: its affine at 2e38)."""
+
+    name, max_frames = "coarse", 30
+
+    def __init__(self):
+        self.first = None
+
+    @property
+    def started(self) -> bool:
+        return self.first is not None
+
+    def status(self) -> dict:
+        return {"frames_tracked": 3}
+
+    def set_first(self, frame_index, pyramid, exposure) -> None:
+        self.first = frame_index
+
+    def track(self, frame_index, pyramid, exposure) -> InitializationResult | None:
+        return InitializationResult(self.first, frame_index, np.full((4, 4), np.nan), np.zeros((0, 2)), np.zeros(0))
+
+
+class DivergedFirst:
+    """The factory of a run whose first attempt diverges: the configured initializer after it."""
+
+    def __init__(self, configured):
+        self.configured = configured
+
+    def __call__(self, failed: str | None):
+        return self.configured(failed) if failed else DivergedStart()
+
+    def start_witness(self):
+        return self.configured.start_witness()
+
+
+def test_a_start_that_diverged_is_an_attempt_that_failed_not_a_map():
+    """The odometry makes no map of a start without points: the attempt fails, reported with the reason, and the
+    next initializer starts over from that frame and starts the map."""
+    sequence = make_sequence("smooth", 30, 0, WIDTH, HEIGHT)
+    odometry = Odometry(load_config(overrides=["method=direct"]), sequence.camera)
+    direct = odometry.direct
+    direct.make_initializer = DivergedFirst(direct.make_initializer)
+    direct.initializer = direct.make_initializer(None)
+    results = [odometry.track(frame) for frame in sequence]
+    failed = events_of(results, EventKind.INITIALIZATION_FAILED)
+    assert failed and failed[0].frame_index == 1 and failed[0].details["reason"] == "the start has no points"
+    assert events_of(results, EventKind.INITIALIZATION_STARTED)[1].frame_index == 1
+    assert events_of(results, EventKind.INITIALIZATION_SUCCEEDED) and results[-1].T_world_cam is not None
+
+
 class TwinStart:
     """An initializer that hands over the wrong one of the two motions a plane seen in two views allows
     (Faugeras' two-fold ambiguity: both explain the two images exactly), with depths on the wrong plane: the start

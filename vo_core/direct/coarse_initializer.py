@@ -410,7 +410,7 @@ class CoarseInitializer:
         """initializeFromInitializer: good level-0 points, inverse depths rescaled to mean 1."""
         state = self.levels[0]
         good = state.good & (state.iR > 0)
-        rescale = 1.0 / np.mean(state.iR[good])
+        rescale = 1.0 / np.mean(state.iR[good]) if good.any() else np.nan  # none: the odometry refuses the start
         keep = np.flatnonzero(good)
         if len(keep) > self.point_density:
             keep = np.sort(self.rng.choice(keep, int(self.point_density), replace=False))

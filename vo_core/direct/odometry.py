@@ -319,15 +319,18 @@ class DirectOdometry:
         outcome = self.initializer.track(frame.index, frame.pyramid, frame.exposure)
         self.initializer_frames += 1
         result.timings_ms["initializer"] = _ms_since(start)
-        if outcome is None:
-            if self.initializer_frames >= self.initializer.max_frames:
-                # Too long without enough baseline or texture: start over from this frame.
-                details = {**self.initializer.status(), "frames": self.initializer_frames,
-                           "method": self.initializer.name}
-                result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
-                self.initializer = self.make_initializer(self.initializer.name)
-                return self.initialize(frame, result)
+        if outcome is None and self.initializer_frames < self.initializer.max_frames:
             return None
+        # Too long without enough baseline or texture, or a start no map can be made of: over from this frame.
+        unusable = None if outcome is None else _unusable(outcome)
+        if outcome is None or unusable is not None:
+            details = {**self.initializer.status(), "frames": self.initializer_frames,
+                       "method": self.initializer.name}
+            if unusable is not None:
+                details["reason"] = unusable
+            result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
+            self.initializer = self.make_initializer(self.initializer.name)
+            return self.initialize(frame, result)
         self._start_from_initialization(frame, outcome, result)
         return outcome
 
@@ -943,6 +946,17 @@ class DirectOdometry:
             direct_inverse_depths=np.concatenate(idepths) if idepths else np.zeros(0),
             keyframe_poses=dict(self.keyframe_poses),
         )
+
+
+def _unusable(outcome: InitializationResult) -> str | None:
+    """Why an initializer's result can start no map (its optimization diverged: DSO's coarse initializer on the drone
+    clip at a third of its frame rate handed over no point, its affine at 2e38 and its pose not finite), None where
+    it can."""
+    if len(outcome.inverse_depths) == 0:
+        return "the start has no points"
+    if not (np.all(np.isfinite(outcome.T_first_second)) and np.all(np.isfinite(outcome.inverse_depths))):
+        return "the start's pose or depths are not finite"
+    return None
 
 
 def _ms_since(start: float) -> float:
