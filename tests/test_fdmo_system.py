@@ -452,16 +452,28 @@ def test_a_direct_map_whose_scale_collapsed_is_overruled_by_the_feature_map_at_i
 
 def test_the_feature_map_does_not_follow_a_collapsed_direct_map_through_frames_it_cannot_recognize(clean_ate):
     """Once the feature map overruled a keyframe of the collapsed direct map, it holds still (fdmo/decide.judge_keyframe)
-    while it cannot recover a frame: the keyframes the direct map makes meanwhile, at the collapsed scale, do not join
-    it, and the first frame it recognizes restarts the direct map at the scale it kept. Had they joined, that frame
-    would be recovered in the collapsed map (TUM fr1/desk: a failed recovery ended the hold, the next keyframes joined,
-    and the run kept the collapse, 0.80 m against 0.22 m)."""
+    and no frame is tracked in the window it contradicted: a frame it cannot recover gets no pose, reported, and makes
+    no keyframe, so the feature map takes none at the collapsed scale; the first frame it recognizes restarts the
+    direct map at the scale it kept. Had the window gone on, its frames would be posed at the collapsed scale, and
+    had its keyframes joined, that frame would be recovered in the collapsed map (TUM fr1/desk: a failed recovery
+    ended the hold, the next keyframes joined, and the run kept the collapse, 0.80 m against 0.22 m)."""
     unrecognized = 8
     results, odometry = run_collapsed(unrecognized=unrecognized)
     caught = frames_with(results, EventKind.KEYFRAME_OVERRULED)[0]
-    assert frames_with(results, EventKind.RECOVERY_FAILED) == list(range(caught + 1, caught + 1 + unrecognized))
-    held = [r.frame_index for r in results if r.is_keyframe and caught < r.frame_index <= caught + unrecognized]
-    assert held and not set(held) & set(odometry.features.map.keyframes)
+    lost = list(range(caught + 1, caught + 1 + unrecognized))
+    assert frames_with(results, EventKind.RECOVERY_FAILED) == lost
+    assert all(r.T_world_cam is None and not r.is_keyframe for r in results if r.frame_index in lost)
     restarted = frames_with(results, EventKind.DIRECT_RESTARTED)
     assert restarted and restarted[0] == caught + 1 + unrecognized
+    assert not [k for k in odometry.features.map.keyframes if caught <= k < restarted[0]]
     assert ate_without(results, FAULT_START, restarted[0] - 1) < 1.5 * clean_ate + 1e-3
+
+
+def test_a_hold_no_frame_ends_begins_a_new_map_as_any_loss_does():
+    """Frames the held feature map cannot recover are lost frames like any other: after
+    ``fdmo.lost_frames_before_reinitialization`` of them a new map begins from scratch, reported."""
+    results, _ = run_collapsed(["fdmo.lost_frames_before_reinitialization=4"], unrecognized=8)
+    caught = frames_with(results, EventKind.KEYFRAME_OVERRULED)[0]
+    new_map = [e for r in results for e in r.events if e.kind is EventKind.REINITIALIZATION]
+    assert new_map and new_map[0].frame_index == caught + 4 and new_map[0].details["from_scratch"]
+    assert all(r.T_world_cam is None for r in results[caught + 1:caught + 5])
