@@ -451,12 +451,12 @@ def test_a_direct_map_whose_scale_collapsed_is_overruled_by_the_feature_map_at_i
 
 
 def test_the_feature_map_does_not_follow_a_collapsed_direct_map_through_frames_it_cannot_recognize(clean_ate):
-    """Once the feature map overruled a keyframe of the collapsed direct map, it holds still (fdmo/decide.judge_keyframe)
-    and no frame is tracked in the window it contradicted: a frame it cannot recover gets no pose, reported, and makes
-    no keyframe, so the feature map takes none at the collapsed scale; the first frame it recognizes restarts the
-    direct map at the scale it kept. Had the window gone on, its frames would be posed at the collapsed scale, and
-    had its keyframes joined, that frame would be recovered in the collapsed map (TUM fr1/desk: a failed recovery
-    ended the hold, the next keyframes joined, and the run kept the collapse, 0.80 m against 0.22 m)."""
+    """Once the feature map overruled a keyframe of the collapsed direct map, it holds still
+    (fdmo/decide.judge_keyframe) and no frame is tracked in the window it contradicted: a frame it cannot recover gets
+    no pose, reported, and makes no keyframe, so the feature map takes none at the collapsed scale; the first frame it
+    recognizes restarts the direct map at the scale it kept. Had the window gone on, its frames would be posed at the
+    collapsed scale, and had its keyframes joined, that frame would be recovered in the collapsed map (TUM fr1/desk: a
+    failed recovery ended the hold, the next keyframes joined, and the run kept the collapse, 0.80 m against 0.22 m)."""
     unrecognized = 8
     results, odometry = run_collapsed(unrecognized=unrecognized)
     caught = frames_with(results, EventKind.KEYFRAME_OVERRULED)[0]

@@ -200,7 +200,8 @@ class FeatureOnlyOdometry:
         self.young = YoungMap(start.first_index, frame.index, [frame.timestamp])
         witness = self.start_witness()
         if witness is not None:
-            self.probation = StartProbation(witness, {start.first_index: self.reference_image, frame.index: frame.image})
+            images = {start.first_index: self.reference_image, frame.index: frame.image}
+            self.probation = StartProbation(witness, images)
             witness.prepare(self.probation.views(self.map), self.camera)
         self._moved_to(tracked)
         return self._pose_result(tracked, None, is_keyframe=True, inliers=len(ids))
