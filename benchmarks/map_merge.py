@@ -85,8 +85,8 @@ def run(sequence, parts: list[Part], seed: int) -> dict:
     results = tracked.results
     events = [(r, e) for r in results for e in r.events]
     merged = estimated_trajectory(results, tracked.keyframe_poses)
-    tracked = Trajectory(np.array([r.timestamp for r in results if r.T_world_cam is not None]),
-                         np.array([r.T_world_cam for r in results if r.T_world_cam is not None]))
+    as_tracked = Trajectory(np.array([r.timestamp for r in results if r.T_world_cam is not None]),
+                            np.array([r.T_world_cam for r in results if r.T_world_cam is not None]))
     new_maps = [r.timestamp for r, e in events if e.kind in (EventKind.INITIALIZATION_SUCCEEDED,)]
     truth_at = dict(zip(np.round(truth.timestamps, 6), truth.poses))
 
@@ -104,8 +104,8 @@ def run(sequence, parts: list[Part], seed: int) -> dict:
         "merges": [f"{e.details['keyframe']} -> {e.details['merged_keyframe']} ({apart(e.details)})"
                    for _, e in events if e.kind is EventKind.MAPS_MERGED],
         "ATE merged": evaluate(merged, truth)["ate"]["rmse"],
-        "ATE as tracked": evaluate(tracked, truth)["ate"]["rmse"],
-        "ATE per map": ate_per_map(tracked, truth, np.array(new_maps))[0],
+        "ATE as tracked": evaluate(as_tracked, truth)["ate"]["rmse"],
+        "ATE per map": ate_per_map(as_tracked, truth, np.array(new_maps))[0],
     }
 
 

@@ -319,20 +319,24 @@ class DirectOdometry:
         outcome = self.initializer.track(frame.index, frame.pyramid, frame.exposure)
         self.initializer_frames += 1
         result.timings_ms["initializer"] = _ms_since(start)
-        if outcome is None and self.initializer_frames < self.initializer.max_frames:
-            return None
-        # Too long without enough baseline or texture, or a start no map can be made of: over from this frame.
-        unusable = None if outcome is None else _unusable(outcome)
-        if outcome is None or unusable is not None:
-            details = {**self.initializer.status(), "frames": self.initializer_frames,
-                       "method": self.initializer.name}
-            if unusable is not None:
-                details["reason"] = unusable
-            result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
-            self.initializer = self.make_initializer(self.initializer.name)
-            return self.initialize(frame, result)
+        if outcome is None:
+            if self.initializer_frames < self.initializer.max_frames:
+                return None
+            return self._attempt_failed(frame, result, {})  # too long without enough baseline or texture
+        unusable = _unusable(outcome)
+        if unusable is not None:
+            return self._attempt_failed(frame, result, {"reason": unusable})
         self._start_from_initialization(frame, outcome, result)
         return outcome
+
+    def _attempt_failed(self, frame: DirectFrame, result: FrameResult, why: dict) -> InitializationResult | None:
+        """The initializer's attempt failed: reported (its status, and ``why`` over it), and a fresh initializer
+        starts over from this frame."""
+        details = {**self.initializer.status(), "frames": self.initializer_frames, "method": self.initializer.name,
+                   **why}
+        result.events.append(_event(EventKind.INITIALIZATION_FAILED, frame, details))
+        self.initializer = self.make_initializer(self.initializer.name)
+        return self.initialize(frame, result)
 
     def track(self, frame: DirectFrame, T_world_cam_prior: np.ndarray | None = None) -> DirectTracking:
         """trackNewCoarse: align the frame against the newest keyframe from DSO's motion hypotheses, or from
