@@ -7,6 +7,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from posed import posed_trajectory
 
 from vo_core.config import load_config
 from vo_core.direct.marginalization import MarginalizationPrior
@@ -28,8 +29,7 @@ def run(method: str, frames, ground_truth=None, overrides=()) -> tuple[float, li
     """(ATE after one Sim(3) alignment of the whole trajectory, the results, the odometry)."""
     odometry = Odometry(load_config(overrides=[f"method={method}", *overrides]), CAMERA)
     results = [odometry.track(frame) for frame in frames]
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     truth = SMOOTH.ground_truth if ground_truth is None else ground_truth
     return evaluate(estimate, truth)["ate"]["rmse"], results, odometry
 
@@ -210,8 +210,7 @@ def test_where_the_recovered_pose_leads_back_to_the_direct_pose_the_same_window_
     elsewhere, _ = after_gap(["fdmo.same_optimum_px=0"], explained=0.0, motion_model_fit=0.7)
     assert EventKind.DIRECT_RESTARTED in [e.kind for e in elsewhere.events]
     assert EventKind.DIRECT_RESUMED not in [e.kind for e in elsewhere.events]
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 1.5 * clean_ate + 1e-3
 
 
@@ -271,8 +270,7 @@ def test_after_missed_frames_a_direct_pose_that_stays_behind_is_not_kept_on_weak
     before_gap = next(r for r in results if r.frame_index == FAULT_START - 1)
     assert after.T_world_cam is None or not np.allclose(after.T_world_cam, before_gap.T_world_cam)
     # What the frame got instead (a recovery, or no pose) keeps the run where it was: near the clean run's error.
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 2 * clean_ate + 1e-3
 
 
@@ -295,8 +293,7 @@ def test_a_direct_pose_that_stays_behind_is_refused_even_where_the_feature_map_c
     assert EventKind.TRACKING_CHECKED not in [e.kind for e in after.events]
     before_gap = next(r for r in results if r.frame_index == FAULT_START - 1)
     assert after.T_world_cam is None or not np.allclose(after.T_world_cam, before_gap.T_world_cam)
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     assert evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"] < 2 * clean_ate + 1e-3
 
 
@@ -421,8 +418,7 @@ def run_collapsed(overrides=(), unrecognized: int = 0) -> tuple[list, Odometry]:
 
 def ate_without(results, first: int, last: int) -> float:
     """The ATE of the frames posed outside ``first``-``last``."""
-    posed = [r for r in results if r.T_world_cam is not None and not first <= r.frame_index <= last]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(r for r in results if not first <= r.frame_index <= last)
     return evaluate(estimate, SMOOTH.ground_truth)["ate"]["rmse"]
 
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from bundle_adjustment_window import CAMERA as BA_CAMERA
 from bundle_adjustment_window import make_window
+from posed import posed_trajectory
 
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
@@ -29,8 +30,7 @@ def run(frames, camera, overrides=()):
 
 
 def ate(results, ground_truth) -> float:
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     return evaluate(estimate, ground_truth)["ate"]["rmse"]
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from posed import posed_trajectory
 
 from vo_core.config import load_config
 from vo_core.errors import InputError
@@ -21,7 +22,6 @@ from vo_core.geometry.klt import KltTracker
 from vo_core.geometry.lie import se3_inverse, so3_geodesic_angle
 from vo_core.synthetic import make_sequence
 from vo_core.system import Odometry
-from vo_core.trajectory import Trajectory
 
 WIDTH, HEIGHT = 320, 240
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "klt"
@@ -38,11 +38,6 @@ def run(frames, camera, config: KltConfig | None = None):
 
 def kinds(results) -> list[EventKind]:
     return [event.kind for result in results for event in result.events]
-
-
-def estimate(results) -> Trajectory:
-    posed = [r for r in results if r.T_world_cam is not None]
-    return Trajectory(np.array([r.timestamp for r in posed]), np.stack([r.T_world_cam for r in posed]))
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +100,7 @@ def test_smooth_sequence_is_tracked_with_small_ate(smooth):
     first_posed = next(r.frame_index for r in results if r.T_world_cam is not None)
     assert first_posed <= 10
     assert all(r.T_world_cam is not None for r in results if r.frame_index >= first_posed)
-    metrics = evaluate(estimate(results), sequence.ground_truth, align="sim3")
+    metrics = evaluate(posed_trajectory(results), sequence.ground_truth, align="sim3")
     truth = sequence.ground_truth.positions
     path = np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1))
     assert metrics["ate"]["rmse"] < 0.03 * path  # measured: 1.2 % of the 1 m path
@@ -176,7 +171,7 @@ def test_dropped_frames_are_bridged_by_the_motion_model():
     sequence = synthetic("jump", 60)
     _, results = run(list(sequence), sequence.camera)
     assert EventKind.TRACKING_FAILED not in kinds(results)
-    metrics = evaluate(estimate(results), sequence.ground_truth, align="sim3")
+    metrics = evaluate(posed_trajectory(results), sequence.ground_truth, align="sim3")
     path = np.sum(np.linalg.norm(np.diff(sequence.ground_truth.positions, axis=0), axis=1))
     assert metrics["ate"]["rmse"] < 0.03 * path  # measured: 1.0 % of the 1.2 m path
 

@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from posed import posed_trajectory
 
 from app.sinks.files import KEYFRAMES_FILE, TRAJECTORY_FILE, FilesSink
 from vo_core.config import load_config
@@ -54,8 +55,8 @@ def events_of(results, kind: EventKind) -> list[Event]:
 def tracked_and_corrected(results) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The posed frames' times, their poses as tracked, and their poses as the sinks write them: moved by every loop
     closed and map merged, in turn."""
-    posed = [r for r in results if r.T_world_cam is not None]
-    times, tracked = np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed])
+    posed = posed_trajectory(results)
+    times, tracked = posed.timestamps, posed.poses
     corrected = tracked
     for event in (event for result in results for event in result.events if event.kind in POSE_CORRECTIONS):
         corrected = loop_corrected(event.details, times, corrected)

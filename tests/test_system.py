@@ -6,13 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from posed import posed_trajectory
 
 from vo_core.config import load_config
 from vo_core.datasets import open_sequence
 from vo_core.eval.metrics import evaluate
 from vo_core.events import EventKind
 from vo_core.system import Odometry
-from vo_core.trajectory import Trajectory, read_trajectory
+from vo_core.trajectory import read_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "assets" / "rgbd_dataset_freiburg3_teddy_first80"
@@ -68,6 +69,5 @@ def test_frames_missed_after_the_start_do_not_trade_the_window_for_a_young_featu
     else:
         assert resumed and why in resumed[0].details["why"]
     assert not {EventKind.DIRECT_RESTARTED, EventKind.REINITIALIZATION} & {e.kind for e in events}
-    posed = [r for r in results if r.T_world_cam is not None]
-    estimate = Trajectory(np.array([r.timestamp for r in posed]), np.array([r.T_world_cam for r in posed]))
+    estimate = posed_trajectory(results)
     assert evaluate(estimate, sequence.ground_truth)["ate"]["rmse"] < 0.02
