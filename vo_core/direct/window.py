@@ -18,7 +18,9 @@ gradient-dependent weights). One iteration of Levenberg-Marquardt:
 2. Schur complement over the points (each point one inverse depth, so its block is a scalar):
    H_s = H_kk - H_kp H_pp^-1 H_pk, b_s = b_k - H_kp H_pp^-1 b_p; solve the small dense keyframe system,
    then each point's step by back substitution;
-3. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100), as DSO.
+3. accept the step if the energy drops (lambda / 4), otherwise reject it (lambda x 100): DSO's test, which its
+   default (setting_forceAceptStep) skips, taking every step; taking every step here moved the real folders both
+   ways (BENCHMARKS.md, Tried and not kept).
 
 A residual that is out of view when an optimization ends (its pattern leaves the target image, or the point is
 behind the target camera) is dropped for good (``Keyframe.dropped_residuals``), as DSO deletes residuals that are out
