@@ -199,9 +199,8 @@ def test_a_map_lost_for_longer_than_the_relocalization_time_is_left_for_a_new_on
     assert 30 + 6 <= begun < 38  # after 0.2 s of failed relocalizations, on a dark frame
     after = [r for r in results if r.frame_index > begun and r.T_world_cam is not None]
     assert len(after) >= 8
-    times = np.array([r.timestamp for r in after])
-    estimate = Trajectory(times, np.array([r.T_world_cam for r in after]))
-    truth = Trajectory(times, np.array([sequence.ground_truth.poses[r.frame_index] for r in after]))
+    estimate = posed_trajectory(after)
+    truth = Trajectory(estimate.timestamps, np.array([sequence.ground_truth.poses[r.frame_index] for r in after]))
     assert evaluate(estimate, truth)["ate"]["rmse"] < 0.02 * path_length(sequence)
     waited, _ = run(played, sequence.camera)
     assert EventKind.REINITIALIZATION not in kinds(waited) and EventKind.RECOVERY_SUCCEEDED in kinds(waited[38:])
