@@ -3,6 +3,9 @@ truth than the perturbed start, and a run with it tracks a synthetic sequence be
 
 from __future__ import annotations
 
+import dataclasses
+
+import cv2
 import numba
 import numpy as np
 import pytest
@@ -28,9 +31,10 @@ CONFIG = DirectConfig()
 KEYFRAME_FRAMES = (0, 3, 6, 9, 12)
 
 
-def optimizer() -> WindowOptimizer:
-    return WindowOptimizer(CONFIG.window, CONFIG.tracker.huber_threshold, CONFIG.immature.outlier_threshold,
-                           CONFIG.immature.outlier_sum_component)
+def optimizer(**window) -> WindowOptimizer:
+    """The window optimizer as DirectOdometry makes it, with ``window`` settings replaced."""
+    return WindowOptimizer(dataclasses.replace(CONFIG.window, **window), CONFIG.tracker.huber_threshold,
+                           CONFIG.immature.outlier_threshold, CONFIG.immature.outlier_sum_component)
 
 
 def true_window(sequence) -> list[Keyframe]:
@@ -188,6 +192,30 @@ def test_a_residual_out_of_view_when_an_optimization_ends_is_dropped_for_good():
     assert before.dropped_residuals[newest.frame_index].all()
 
 
+def test_the_newest_keyframes_outlier_threshold_follows_its_blur_as_dsos_frame_energy_threshold():
+    """DSO's frameEnergyTH: the newest keyframe's outlier threshold comes from the energies of the residuals in it,
+    so a blurred keyframe (fast motion) raises its own and keeps its outliers as few as a sharp one has, where the
+    fixed threshold makes more of them outliers; the other keyframes keep the threshold they start from."""
+    sequence = make_sequence("smooth", num_frames=13, seed=1, width=320, height=240)
+
+    def optimized(blur_sigma: float, adaptive: bool):
+        keyframes = true_window(sequence)
+        newest = keyframes[-1]
+        if blur_sigma:
+            blurred = cv2.GaussianBlur(newest.pyramid[0].intensity.astype(np.float32), (0, 0), blur_sigma)
+            newest.pyramid = ImagePyramid(blurred, newest.camera, CONFIG.pyramid)
+        return optimizer(adaptive_outlier_threshold=adaptive).optimize(keyframes, MarginalizationPrior()), keyframes
+
+    (sharp, keyframes), (blurred, _) = optimized(0.0, True), optimized(3.0, True)
+    (fixed_sharp, _), (fixed_blurred, _) = optimized(0.0, False), optimized(3.0, False)
+    # measured: 453 -> 2159 adaptive, 1152 fixed; outliers 857 -> 780 adaptive, 432 -> 833 fixed
+    assert blurred.newest_threshold > 3 * sharp.newest_threshold
+    assert fixed_sharp.newest_threshold == fixed_blurred.newest_threshold == 8 * CONFIG.immature.outlier_threshold
+    assert blurred.outliers <= sharp.outliers
+    assert fixed_blurred.outliers > 1.5 * fixed_sharp.outliers
+    assert [k.energy_threshold for k in keyframes[:-1]] == [CONFIG.window.initial_energy_threshold] * 4
+
+
 def test_a_state_with_a_nan_is_refused_without_reading_the_images():
     """A state with an inf or NaN (a step that diverged) gets an infinite energy and no residual in view, which the
     optimization refuses as it refuses any step that does not lower the energy (its points with a NaN would
@@ -250,7 +278,7 @@ def test_the_linearized_gradient_matches_the_energy_numerically():
     for keyframe in keyframes[1:]:  # away from the minimum, where the gradient is informative
         keyframe.T_world_cam = se3_exp(np.r_[rng.normal(0, 0.003, 3), rng.normal(0, 0.003, 3)]) @ keyframe.T_world_cam
         keyframe.affine = rng.normal(0, [0.02, 2.0])
-    window = optimizer()
+    window = optimizer(adaptive_outlier_threshold=False)  # the threshold the values below were measured with
     points = window._window_points(keyframes)
     idepth = np.concatenate([k.active_idepth for k in keyframes])
     poses = [k.T_world_cam for k in keyframes]

@@ -177,6 +177,19 @@ class WindowConfig:
     # does not see scale, and free steps drifted it by 40-80 % of the translation step on teddy). Before any
     # prior exists the scale stays free: fixing it there too lost KITTI at one seed of five. 0: never fixed.
     scale_fixed_from_step: int = 2
+    # DSO's outlier threshold per keyframe (FrameHessian::frameEnergyTH, FullSystem::setNewFrameEnergyTH): a point's
+    # residual is an outlier when its energy is above the larger of its host's and its target's threshold. The
+    # newest keyframe's is (w c + (1 - w) f sqrt(e_q))^2, e_q the q-quantile of the energies of the residuals in it,
+    # so blurred or badly lit keyframes keep their points; a new keyframe starts from the one before it's.
+    # Off by default (the fixed setting_outlierTH per pattern pixel for every keyframe): on the real-data matrix it
+    # gains at lower frame rates and on the drone clip, but FDMO's two loops lose the second loop on parking and KITTI
+    # (BENCHMARKS.md, Tried and not kept).
+    adaptive_outlier_threshold: bool = False
+    energy_threshold_quantile: float = 0.7  # q: setting_frameEnergyTHN
+    energy_threshold_factor: float = 1.5  # f: setting_frameEnergyTHFacMedian
+    energy_threshold_constant: float = 26.0  # c: setNewFrameEnergyTH's 26
+    energy_threshold_constant_weight: float = 0.5  # w: setting_frameEnergyTHConstWeight
+    initial_energy_threshold: float = 8 * 8 * 8  # FrameHessian's frameEnergyTH: 8 * 8 * patternNum
 
 
 @dataclass

@@ -87,6 +87,9 @@ class Keyframe:
     # Target keyframe's frame index -> (N,) bool over the first N active points: their residual in that keyframe
     # was out of its view when the last window optimization ended, and is dropped for good (window.py).
     dropped_residuals: dict = field(default_factory=dict)
+    # DSO's frameEnergyTH: the outlier threshold on a point's energy, set by the window optimization that takes the
+    # keyframe as its newest (window.py); None before it.
+    energy_threshold: float | None = None
     immature: ImmaturePoints | None = None
     # The tracking reference made on this keyframe: every active point of the window projected into it
     # (DSO's coarse depth map). Pixels at level 0 and inverse depths in this keyframe.

@@ -389,7 +389,7 @@ def search_line(intensity, start_u, start_v, dx, dy, num_steps, rotated, color, 
 @kernel(parallel=True)
 def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, host_start, images, image_slots, R, t,
                          R0, t0, adjoint0, factor, offset, host_b, active, dropped, intrinsics, border, huber,
-                         outlier_energy, weight_component, with_terms):
+                         energy_thresholds, weight_component, with_terms):
     """The Gauss-Newton system of the window's photometric energy: every point of every active host keyframe in
     every other keyframe (DSO's PointFrameResidual::linearize and the accumulation of EnergyFunctional, all
     residuals in one pass).
@@ -404,7 +404,8 @@ def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, 
     Residual of pattern pixel k: r = I_target(warp) - (factor * color + offset), Huber-weighted, times the
     squared mean of the host and target gradient weights w = sqrt(c / (c + |grad|^2)), c = ``weight_component``.
     A point's residual in a target is out when a pattern pixel leaves the image (or the point is behind the
-    camera) and an outlier (charged ``outlier_energy``, no terms) when its energy is larger.
+    camera) and an outlier when its energy is larger than the larger of its host's and its target's
+    ``energy_thresholds`` (DSO's frameEnergyTH): it is charged that threshold and brings no terms.
 
     Jacobians as DSO: the image gradient per pattern pixel at the current warp; the pixel's motion with the
     pose and the inverse depth once per point, at its centre and at the first estimate (first-estimate
@@ -417,24 +418,27 @@ def window_linearization(pattern_rays, center_rays, idepth, color, host_weight, 
     Blocks of points are linearized in parallel (each writes only its own points' rows and its own part of its host's
     pair systems); the blocks' parts are then summed in a fixed order, so the result does not depend on the threads.
 
-    Returns (energy, status, H_kk, b_k, H_pk, H_pp, b_p): status[target, i] is 0 in, 1 out (also for the point's
-    own host and inactive hosts), 2 outlier; H_pk (P, 8K) is the transposed keyframe-point coupling; the
+    Returns (energy, status, residual_energy, H_kk, b_k, H_pk, H_pp, b_p): status[target, i] is 0 in, 1 out (also
+    for the point's own host and inactive hosts), 2 outlier; residual_energy[target, i] the residual's energy before
+    any outlier cap (0 where out); H_pk (P, 8K) is the transposed keyframe-point coupling; the
     points' blocks H_pp are scalars. Without ``with_terms`` only the energy and status are computed (the system is
     zero): for a state whose system no step will be solved from (a fifth less time).
     """
     n_kf = len(host_start) - 1
     blocks = _point_blocks(host_start, active)
-    status, H_pk, H_pp, b_p, M_blocks, m_blocks, block_energy = _linearization_buffers(color.shape[0], n_kf,
-                                                                                        len(blocks))
+    status, residual_energy, H_pk, H_pp, b_p, M_blocks, m_blocks, block_energy = _linearization_buffers(
+        color.shape[0], n_kf, len(blocks))
     if not (_all_finite(idepth) and _all_finite(R) and _all_finite(t) and _all_finite(R0) and _all_finite(t0)):
-        return _diverged_state(status, H_pk, H_pp, b_p)  # a step that diverged: refused whatever else it does
+        # a step that diverged: refused whatever else it does
+        return _diverged_state(status, residual_energy, H_pk, H_pp, b_p)
     for j in numba.prange(len(blocks)):
         block_energy[j] = _linearize_points(
             blocks[j, 0], blocks[j, 1], blocks[j, 2], pattern_rays, center_rays, idepth, color, host_weight, images,
             image_slots, R, t, R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber,
-            outlier_energy, weight_component, with_terms, status, H_pk, H_pp, b_p, M_blocks[j], m_blocks[j])
+            energy_thresholds, weight_component, with_terms, status, residual_energy, H_pk, H_pp, b_p, M_blocks[j],
+            m_blocks[j])
     energy, H_kk, b_k = _keyframe_system(blocks, M_blocks, m_blocks, block_energy, adjoint0, active)
-    return energy, status, H_kk, b_k, H_pk, H_pp, b_p
+    return energy, status, residual_energy, H_kk, b_k, H_pk, H_pp, b_p
 
 
 # The work around window_linearization's parallel loop is in helpers of their own: numba makes every array
@@ -451,17 +455,18 @@ def _all_finite(array):
 
 
 @kernel
-def _diverged_state(status, H_pk, H_pp, b_p):
+def _diverged_state(status, residual_energy, H_pk, H_pp, b_p):
     """window_linearization's answer for a state with inf or NaN (a step that diverged): infinite energy, no residual
     in view, no terms."""
     n_kf = status.shape[0]
-    return np.inf, status, np.zeros((8 * n_kf, 8 * n_kf)), np.zeros(8 * n_kf), H_pk, H_pp, b_p
+    return np.inf, status, residual_energy, np.zeros((8 * n_kf, 8 * n_kf)), np.zeros(8 * n_kf), H_pk, H_pp, b_p
 
 
 @kernel
 def _linearization_buffers(n_points, n_kf, n_blocks):
-    return (np.ones((n_kf, n_points), np.int8), np.zeros((n_points, 8 * n_kf)), np.zeros(n_points),
-            np.zeros(n_points), np.zeros((n_blocks, n_kf, 9, 9)), np.zeros((n_blocks, n_kf, 9)), np.zeros(n_blocks))
+    return (np.ones((n_kf, n_points), np.int8), np.zeros((n_kf, n_points)), np.zeros((n_points, 8 * n_kf)),
+            np.zeros(n_points), np.zeros(n_points), np.zeros((n_blocks, n_kf, 9, 9)), np.zeros((n_blocks, n_kf, 9)),
+            np.zeros(n_blocks))
 
 
 @kernel
@@ -516,11 +521,11 @@ def _point_blocks(host_start, active):
 
 @kernel
 def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, host_weight, images, image_slots, R, t,
-                      R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber, outlier_energy,
-                      weight_component, with_terms, status, H_pk, H_pp, b_p, M_block, m_block):
-    """window_linearization's work for points first..end-1 of host keyframe h: their rows of status, H_pk, H_pp and
-    b_p, and in ``M_block[tg]`` / ``m_block[tg]`` their part of each target's local 9-parameter system (upper
-    triangle). Returns their energy."""
+                      R0, t0, adjoint0, factor, offset, host_b, dropped, intrinsics, border, huber, energy_thresholds,
+                      weight_component, with_terms, status, residual_energy, H_pk, H_pp, b_p, M_block, m_block):
+    """window_linearization's work for points first..end-1 of host keyframe h: their rows of status,
+    residual_energy, H_pk, H_pp and b_p, and in ``M_block[tg]`` / ``m_block[tg]`` their part of each target's local
+    9-parameter system (upper triangle). Returns their energy."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     n_kf = len(image_slots)
     pattern = color.shape[1]
@@ -543,6 +548,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
         height, width = image.shape[0], image.shape[1]
         Rc, tc, Rf, tf = R[h, tg], t[h, tg], R0[h, tg], t0[h, tg]
         pair_factor, pair_offset = factor[h, tg], offset[h, tg]
+        outlier_energy = max(energy_thresholds[h], energy_thresholds[tg])
         M = M_block[tg]
         m = m_block[tg]
         pattern_shifts(Rc, pattern_rays, pattern_shift)
@@ -577,6 +583,7 @@ def _linearize_points(h, first, end, pattern_rays, center_rays, idepth, color, h
                 point_energy += gradient_weight * gradient_weight * huber_w * residual * residual * (2.0 - huber_w)
                 residuals[k] = residual
                 weights[k] = huber_w * gradient_weight * gradient_weight
+            residual_energy[tg, i] = point_energy
             if point_energy > outlier_energy:
                 status[tg, i] = 2
                 energy += outlier_energy

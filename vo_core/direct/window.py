@@ -36,6 +36,7 @@ window's scale (DSO's SOLVER_ORTHOGONALIZE_X_LATER).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -89,7 +90,8 @@ class WindowReport:
     prior_energy_after: float
     points: int
     residuals: int
-    outliers: int  # residuals in view beyond the outlier threshold (DSO's setting_outlierTH)
+    outliers: int  # residuals in view beyond their outlier threshold (WindowConfig.adaptive_outlier_threshold)
+    newest_threshold: float  # the newest keyframe's outlier threshold on a point's energy, as the optimization left it
     kept: np.ndarray  # (points,) bool: which of the window's points (host by host, in order) are still active
     ms: float
 
@@ -102,7 +104,8 @@ class WindowReport:
             "iterations": self.iterations, "energy_before": round(self.energy_before, 1),
             "energy_after": round(self.energy_after, 1), "prior_energy_before": round(self.prior_energy_before, 1),
             "prior_energy_after": round(self.prior_energy_after, 1), "points": self.points, "residuals": self.residuals,
-            "outliers": self.outliers, "removed_points": self.removed_points, "ms": round(self.ms, 1),
+            "outliers": self.outliers, "newest_threshold": round(self.newest_threshold, 1),
+            "removed_points": self.removed_points, "ms": round(self.ms, 1),
         }
 
 
@@ -128,7 +131,11 @@ class WindowOptimizer:
         idepth = np.concatenate([k.active_idepth for k in keyframes])
         poses = [k.T_world_cam.copy() for k in keyframes]
         affines = [np.asarray(k.affine, float).copy() for k in keyframes]
-        system = self._linearize(keyframes, points, poses, affines, idepth, prior)
+        thresholds = self._energy_thresholds(keyframes)
+        system = self._linearize(keyframes, points, poses, affines, idepth, prior, thresholds)
+        if self.config.adaptive_outlier_threshold:
+            thresholds[-1] = self._newest_energy_threshold(system)
+            system = system.recapped(_residual_thresholds(thresholds, points.host_start))
         energy = system.energy
         first = system
         lam = self.config.initial_lambda
@@ -143,8 +150,8 @@ class WindowOptimizer:
             # The last step's trial (or one after which the loop ends, if accepted) needs only its energy: no step is
             # solved from its system.
             last = iterations == self.config.max_iterations or small_step
-            trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, start=first,
-                                    with_terms=not last)
+            trial = self._linearize(keyframes, points, trial_poses, trial_affines, trial_idepth, prior, thresholds,
+                                    start=first, with_terms=not last)
             if trial.energy < energy:
                 # Relative to the photometric energy: the total can be negative (the prior's term; WindowReport).
                 small_gain = energy - trial.energy < self.config.min_relative_decrease * system.photometric_energy
@@ -155,9 +162,14 @@ class WindowOptimizer:
             else:
                 lam *= self.config.lambda_increase
         kept = self._write_back(keyframes, poses, affines, idepth, system)
+        for keyframe, threshold in zip(keyframes, thresholds):
+            keyframe.energy_threshold = float(threshold)
+        if self.config.adaptive_outlier_threshold:  # as DSO, the newest keyframe keeps the one of its final state
+            keyframes[-1].energy_threshold = self._newest_energy_threshold(system)
         return WindowReport(
             iterations, first.photometric_energy, system.photometric_energy, first.prior_energy, system.prior_energy,
-            len(idepth), system.residuals, int(system.outliers.sum()), kept, (time.perf_counter() - start) * 1000.0,
+            len(idepth), system.residuals, int(system.outliers.sum()), keyframes[-1].energy_threshold, kept,
+            (time.perf_counter() - start) * 1000.0,
         )
 
     @_BLAS.wrap(limits=1, user_api="blas")
@@ -217,13 +229,38 @@ class WindowOptimizer:
             host_start, *self.window_images(keyframes), _dropped_residuals(keyframes, host_start),
         )
 
+    def _energy_thresholds(self, keyframes: list) -> np.ndarray:
+        """(K,) each keyframe's outlier threshold on a point's energy: its own once it has been the newest of an
+        optimization, else the one before it's (DSO's makeKeyFrame copies the last keyframe's); fixed without
+        ``adaptive_outlier_threshold``."""
+        if not self.config.adaptive_outlier_threshold:
+            return np.full(len(keyframes), self.outlier_energy)
+        thresholds = []
+        for keyframe in keyframes:
+            inherited = thresholds[-1] if thresholds else self.config.initial_energy_threshold
+            thresholds.append(inherited if keyframe.energy_threshold is None else keyframe.energy_threshold)
+        return np.array(thresholds, float)
+
+    def _newest_energy_threshold(self, system: "_System") -> float:
+        """setNewFrameEnergyTH: from the energies of the residuals in the newest keyframe (the last)."""
+        config = self.config
+        energies = system.residual_energy[-1][system.status[-1] != POINT_OUT]
+        if len(energies) == 0:
+            return self.outlier_energy  # DSO: 12 * 12 * patternNum
+        nth = int(config.energy_threshold_quantile * len(energies))
+        root = np.sqrt(np.partition(energies, nth)[nth]) * config.energy_threshold_factor
+        weight = config.energy_threshold_constant_weight
+        return float((weight * config.energy_threshold_constant + (1.0 - weight) * root) ** 2)
+
     def _linearize(self, keyframes, points: _WindowPoints, poses, affines, idepth, prior,
-                   only_host: int | None = None, start: "_System | None" = None, with_terms: bool = True) -> "_System":
+                   thresholds: np.ndarray | None = None, only_host: int | None = None, start: "_System | None" = None,
+                   with_terms: bool = True) -> "_System":
         """The Gauss-Newton system and energy at a state (without ``with_terms``: the energy and the residuals'
-        status, the system zero). A residual that was in view at the ``start`` of the optimization and is out now is
-        charged the outlier energy: a step must not look better by pushing points out of the images (DSO keeps the
-        residual set of an optimization fixed)."""
+        status, the system zero), with the keyframes' outlier ``thresholds`` (by default, their own). A residual that
+        was in view at the ``start`` of the optimization and is out now is charged its outlier threshold: a step must
+        not look better by pushing points out of the images (DSO keeps the residual set of an optimization fixed)."""
         n_kf = len(keyframes)
+        thresholds = self._energy_thresholds(keyframes) if thresholds is None else thresholds
         # First-estimate Jacobians: a keyframe in the prior is linearized at the prior's x0, the others where
         # they are now.
         first_estimates = np.array([prior.x0[k.frame_index][0] if k.frame_index in prior.x0 else T
@@ -234,18 +271,18 @@ class WindowOptimizer:
         factor, offset = relative_affines([k.exposure for k in keyframes], np.array(affines, float))
         active = np.ones(n_kf, bool) if only_host is None else np.arange(n_kf) == only_host
         with PARALLEL_LAUNCH:
-            energy, status, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
+            energy, status, residual_energy, H_kk, b_k, H_pk, H_pp, b_p = window_linearization(
                 points.pattern_rays, points.center_rays, idepth, points.color, points.weight, points.host_start,
                 points.images, points.image_slots, R, t, R0, t0, adjoint0, factor, offset,
                 np.array([ab[1] for ab in affines], float), active, points.dropped, keyframes[0].camera.intrinsics,
-                self.config.border, self.huber, self.outlier_energy, self.weight_component, with_terms,
+                self.config.border, self.huber, thresholds, self.weight_component, with_terms,
             )
         if start is not None:
             left_view = (status == POINT_OUT) & (start.status == POINT_IN)
-            energy += self.outlier_energy * np.count_nonzero(left_view)
+            energy += _residual_thresholds(thresholds, points.host_start)[left_view].sum()
         frame_ids = [k.frame_index for k in keyframes]
         prior_energy = prior.add_to(H_kk, b_k, frame_ids, poses, affines)
-        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, energy, prior_energy, status)
+        return _System(H_kk, b_k, H_pk.T, H_pp, b_p, energy, prior_energy, status, residual_energy)
 
     # ------------------------------------------------------------------------------------ solving
 
@@ -308,6 +345,14 @@ class _System:
     photometric_energy: float
     prior_energy: float
     status: np.ndarray  # (K, P) each point's POINT_IN / OUT / OUTLIER in each keyframe (OUT in its host)
+    residual_energy: np.ndarray  # (K, P) each residual's energy before the outlier cap (0 where out)
+
+    def recapped(self, residual_thresholds: np.ndarray) -> "_System":
+        """The same system with its photometric energy capped at new outlier thresholds (K, P); its statuses and
+        terms stay those of the old ones (the first step of an optimization is solved from them)."""
+        in_view = self.status != POINT_OUT
+        energy = float(np.minimum(self.residual_energy, residual_thresholds)[in_view].sum())
+        return dataclasses.replace(self, photometric_energy=energy)
 
     @property
     def energy(self) -> float:
@@ -326,6 +371,12 @@ class _System:
     @property
     def residuals(self) -> int:
         return int(np.count_nonzero(self.status == POINT_IN))
+
+
+def _residual_thresholds(thresholds: np.ndarray, host_start: np.ndarray) -> np.ndarray:
+    """(K, P) the outlier threshold of each residual: the larger of its host's and its target's."""
+    host = np.repeat(np.arange(len(thresholds)), np.diff(host_start))
+    return np.maximum(thresholds[:, None], thresholds[host][None, :])
 
 
 def _dropped_residuals(keyframes: list, host_start: np.ndarray) -> np.ndarray:

@@ -46,6 +46,7 @@ class WindowFrame:
     active_color: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
     active_grad_sq: np.ndarray = field(default_factory=lambda: np.zeros((0, len(PATTERN_8)), np.float32))
     dropped_residuals: dict = field(default_factory=dict)  # as Keyframe.dropped_residuals
+    energy_threshold: float | None = None  # as Keyframe.energy_threshold
 
     @property
     def camera(self) -> PinholeCamera:
@@ -63,8 +64,10 @@ class AdjustedMap:
 def make_photometric_ba(direct: DirectConfig, config: PhotometricBAConfig) -> WindowOptimizer:
     """The window optimizer as DirectOdometry builds it (its robust costs and LM settings), with the
     initializer's iteration count and stopping rule."""
+    # The start's adjustment keeps DSO's fixed outlier threshold whatever the window's setting: its frames have no
+    # history to adapt one from (DSO's own start, CoarseInitializer, uses a fixed one too).
     window = dataclasses.replace(direct.window, max_iterations=config.max_iterations,
-                                 min_relative_decrease=config.min_relative_decrease)
+                                 min_relative_decrease=config.min_relative_decrease, adaptive_outlier_threshold=False)
     return WindowOptimizer(
         window, direct.tracker.huber_threshold, direct.immature.outlier_threshold,
         direct.immature.outlier_sum_component,
