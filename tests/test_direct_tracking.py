@@ -214,11 +214,27 @@ def test_activation_pulls_inverse_depths_to_the_truth_from_five_percent_off(trac
     targets = ActivationTargets(
         frames[0][0][0].camera, np.stack([frame[0].intensity for frame, _ in frames]), np.arange(len(frames)),
         np.array([se3_inverse(T_world_frame) for _, T_world_frame in frames]), np.tile([1.0, 0.0], (len(frames), 1)))
-    [(idepth, usable)] = optimize_for_activation([ActivationCandidates(start, ready, targets)], CONFIG.immature)
+    [(idepth, usable, _)] = optimize_for_activation([ActivationCandidates(start, ready, targets)], CONFIG.immature)
     assert usable.mean() > 0.9
     relative_error = np.abs(idepth[usable] - true_idepth[ready][usable]) / true_idepth[ready][usable]
     assert np.median(relative_error) < 0.01
     assert np.percentile(relative_error, 90) < 0.03
+
+
+def test_activation_says_in_which_targets_each_points_residual_is_in(traced_points):
+    """optimizeImmaturePoint's residual states: a point gets residuals only in the targets where its residual ended
+    in (odometry._drop_residuals_not_in); a target whose image shows something else has hardly any of them in."""
+    points, _, frames = traced_points
+    ready = np.flatnonzero(points.activatable(CONFIG.immature))
+    images = np.stack([frame[0].intensity for frame, _ in frames])
+    images[-1] = np.random.default_rng(0).uniform(0, 255, images[-1].shape)  # the last target sees noise
+    targets = ActivationTargets(
+        frames[0][0][0].camera, images, np.arange(len(frames)),
+        np.array([se3_inverse(T_world_frame) for _, T_world_frame in frames]), np.tile([1.0, 0.0], (len(frames), 1)))
+    [(_, usable, inliers)] = optimize_for_activation([ActivationCandidates(points, ready, targets)], CONFIG.immature)
+    assert inliers.shape == (len(ready), len(frames))
+    assert inliers[usable, :-1].mean() > 0.9
+    assert inliers[:, -1].mean() < 0.1
 
 
 def test_activation_of_several_hosts_at_once_gives_each_host_what_it_gets_alone(traced_points):
@@ -235,9 +251,10 @@ def test_activation_of_several_hosts_at_once_gives_each_host_what_it_gets_alone(
     hosts = [ActivationCandidates(points, ready[::2], plain), ActivationCandidates(points, ready[1::2], brighter)]
     together = optimize_for_activation(hosts, CONFIG.immature)
     alone = [optimize_for_activation([host], CONFIG.immature)[0] for host in hosts]
-    for (idepth, usable), (idepth_alone, usable_alone) in zip(together, alone):
+    for (idepth, usable, inliers), (idepth_alone, usable_alone, inliers_alone) in zip(together, alone):
         np.testing.assert_array_equal(idepth, idepth_alone)
         np.testing.assert_array_equal(usable, usable_alone)
+        np.testing.assert_array_equal(inliers, inliers_alone)
     # The transfers really differ: the second host's points in the first host's targets end elsewhere.
     in_plain_targets = optimize_for_activation([ActivationCandidates(points, ready[1::2], plain)], CONFIG.immature)[0]
     assert np.abs(in_plain_targets[0] - together[1][0]).max() > 1e-3 * np.abs(together[1][0]).max()

@@ -130,6 +130,11 @@ class ImmatureConfig:
     min_idepth_hessian: float = 100.0  # setting_minIdepthH_act
     activation_min_observations: int = 1  # activatePointsMT: optimizeImmaturePoint(..., minObs = 1, ...)
     first_outlier_slack: float = 1000.0  # optimizeImmaturePoint: first linearization with outlierTHSlack 1000
+    # DSO's optimizeImmaturePoint makes a new point's residuals only in the keyframes where its activation's ended in;
+    # with this off, in every keyframe of the window (each judged at every optimization). Off by default: on the real
+    # folders it holds fr1/desk's window through the sweep (the direct method 0.79 -> 0.33 m, DSO's error), but the
+    # synthetic circuit tracks worse and its loop corrections no longer close it (BENCHMARKS.md, Tried and not kept).
+    residuals_only_where_activated: bool = False
 
 
 @dataclass

@@ -366,12 +366,14 @@ def optimize_for_activation(
     point's inverse depth over all its host's targets, poses held fixed. The hosts' targets share the window's images
     and are as many for each host (the window's other keyframes).
 
-    Returns, per host, (inverse depths, usable): a point is usable when its inverse-depth Hessian reaches
-    ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers."""
+    Returns, per host, (inverse depths, usable, inliers): a point is usable when its inverse-depth Hessian reaches
+    ``min_idepth_hessian`` and at least ``activation_min_observations`` targets are inliers; inliers (n, targets) says
+    in which of its host's targets (in their order) its residual was in at the end."""
     counts = [len(c.index) for c in candidates]
     idepth = np.concatenate([np.asarray(c.points.idepth[c.index], float) for c in candidates] or [np.zeros(0)])
-    usable = np.zeros(len(idepth), dtype=bool)
     targets = [c.targets for c in candidates]
+    usable = np.zeros(len(idepth), dtype=bool)
+    inliers = np.zeros((len(idepth), len(targets[0].image_index) if targets else 0), dtype=bool)
     if len(idepth) and len(targets[0].image_index):
         if any(t.images is not targets[0].images for t in targets):
             raise ValueError("optimize_for_activation: the hosts' targets must share the window's images")
@@ -383,7 +385,7 @@ def optimize_for_activation(
             return np.concatenate([getattr(c.points, field)[c.index] for c in candidates])
 
         with PARALLEL_LAUNCH:
-            usable = _optimize_inverse_depths(
+            usable, inliers = _optimize_inverse_depths(
                 camera.unproject(gathered("uv")), np.repeat(np.arange(len(candidates)), counts),
                 pattern_rays(camera.intrinsics), idepth, gathered("color"), gathered("weight") ** 2,
                 gathered("energy_threshold"), targets[0].images, np.stack([t.image_index for t in targets]),
@@ -393,7 +395,7 @@ def optimize_for_activation(
                 float(config.min_idepth_hessian), int(config.activation_min_observations),
             )
     split = np.cumsum(counts)[:-1]
-    return list(zip(np.split(idepth, split), np.split(usable, split)))
+    return list(zip(np.split(idepth, split), np.split(usable, split), np.split(inliers, split)))
 
 
 @kernel
@@ -426,31 +428,31 @@ def _optimize_inverse_depths(rays, host, pattern_rays, idepth, color, weight_sq,
     """optimize_for_activation's LM, point by point, blocks of points on numba's threads. ``rays`` (n, 3) are the
     points' K^-1 (u, v, 1) in their host ``host[i]``, pattern pixel k's ray is that + ``pattern_rays[k]``; target j
     of host h is ``images[image_index[h, j]]`` at (R[h, j], t[h, j]) = T_target_host with the affine transfer
-    (factor[h, j], offset[h, j]). ``idepth`` is optimized in place; returns the usable mask."""
-    usable, pattern_shift = _activation_buffers(len(idepth), R, pattern_rays)
+    (factor[h, j], offset[h, j]). ``idepth`` is optimized in place; returns the usable mask and the inlier targets."""
+    usable, inliers, pattern_shift = _activation_buffers(len(idepth), R, pattern_rays)
     for block in numba.prange((len(idepth) + ACTIVATION_BLOCK - 1) // ACTIVATION_BLOCK):
         first = block * ACTIVATION_BLOCK
         _optimize_points(first, min(first + ACTIVATION_BLOCK, len(idepth)), rays, host, pattern_shift, idepth, color,
                          weight_sq, threshold, images, image_index, R, t, factor, offset, intrinsics, huber,
-                         first_outlier_slack, iterations, min_hessian, min_observations, usable)
-    return usable
+                         first_outlier_slack, iterations, min_hessian, min_observations, usable, inliers)
+    return usable, inliers
 
 
 @kernel
 def _activation_buffers(n, R, pattern_rays):
-    """The usable mask and each (host, target) pair's pattern_shifts (outside the parallel function: numba makes
+    """The usable mask, the inlier targets and each (host, target) pair's pattern_shifts (outside the parallel function: numba makes
     its array expressions parallel regions of their own)."""
     pattern_shift = np.empty((R.shape[0], R.shape[1], len(pattern_rays), 3))
     for h in range(R.shape[0]):
         for j in range(R.shape[1]):
             pattern_shifts(R[h, j], pattern_rays, pattern_shift[h, j])
-    return np.zeros(n, np.bool_), pattern_shift
+    return np.zeros(n, np.bool_), np.zeros((n, R.shape[1]), np.bool_), pattern_shift
 
 
 @kernel
 def _optimize_points(first, end, rays, host, pattern_shift, idepth, color, weight_sq, threshold, images, image_index,
                      R, t, factor, offset, intrinsics, huber, first_outlier_slack, iterations, min_hessian,
-                     min_observations, usable):
+                     min_observations, usable, inliers):
     """_optimize_inverse_depths for points first..end-1."""
     n_targets, pattern = image_index.shape[1], pattern_shift.shape[2]
     in_bounds = np.empty(n_targets, np.bool_)  # a target once out of bounds stays out (ResState OOB)
@@ -485,6 +487,7 @@ def _optimize_points(first, end, rays, host, pattern_shift, idepth, color, weigh
                 lam *= 5.0
             running = usable[i] and not abs(step) < CONVERGED_STEP_SHARE * abs(idepth[i])
         usable[i] = usable[i] and np.isfinite(idepth[i]) and idepth[i] > 0 and inlier.sum() >= min_observations
+        inliers[i] = inlier
 
 
 @kernel

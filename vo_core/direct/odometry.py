@@ -127,6 +127,18 @@ class Keyframe:
         self.active_grad_sq = np.concatenate([self.active_grad_sq, grad_sq])
 
 
+def _drop_residuals_not_in(host: Keyframe, targets: list[Keyframe], not_in: np.ndarray) -> None:
+    """Points about to be activated in ``host`` have no residual in the targets where their activation's was not
+    in (``not_in``: (new points, targets)): DSO's optimizeImmaturePoint makes a PointFrameResidual only for the
+    targets where the point's residual ended in. Kept as the host's dropped residuals (window.py), which cover its
+    points up to the new ones."""
+    count = len(host.active_idepth)
+    for target, dropped_new in zip(targets, not_in.T):
+        old = host.dropped_residuals.get(target.frame_index, np.zeros(0, bool))[:count]
+        host.dropped_residuals[target.frame_index] = np.concatenate(
+            [old, np.zeros(count - len(old), bool), dropped_new])
+
+
 @dataclass
 class TrackingReference:
     """What frames are tracked against (DSO's coarse tracker with its reference): the newest keyframe's depth map
@@ -828,10 +840,14 @@ class DirectOdometry:
         self._adapt_activation_distance()
         hosts, candidates = self._activation_candidates(new_keyframe)
         activated = 0
-        for (keyframe, outside), chosen, (idepth, usable) in zip(
+        window = self.keyframes + [new_keyframe]
+        for (keyframe, outside), chosen, (idepth, usable, inliers) in zip(
             hosts, candidates, optimize_for_activation(candidates, self.config.immature)
         ):
             immature, activating = keyframe.immature, chosen.index[usable]
+            if self.config.immature.residuals_only_where_activated:
+                targets = [k for k in window if k is not keyframe]  # the activation's targets, in its order
+                _drop_residuals_not_in(keyframe, targets, ~inliers[usable])
             keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
                                 immature.host_grad_sq[activating])
             activated += int(usable.sum())

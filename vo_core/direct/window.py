@@ -26,7 +26,8 @@ A residual that is out of view when an optimization ends (its pattern leaves the
 behind the target camera) is dropped for good (``Keyframe.dropped_residuals``), as DSO deletes residuals that are out
 of bounds then: a point at the edge of a keyframe's view no longer flickers in and out of the energy from one
 optimization to the next. DSO deletes the outliers too; that made parking's ATE twice as large (median of 5
-seeds, BENCHMARKS.md), and outliers stay in the set, to be judged again at each optimization.
+seeds, BENCHMARKS.md), and outliers stay in the set, to be judged again at each optimization. DSO makes a new
+point's residuals only where its activation's ended in: an option here (ImmatureConfig.residuals_only_where_activated).
 
 Gauge: the oldest keyframe of the window (pose and affine) is held fixed. The photometric energy does not see
 the scale either: keyframes that left the window are kept as a prior (marginalization.py) that holds it, and
