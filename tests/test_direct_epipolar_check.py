@@ -111,7 +111,8 @@ def test_views_that_share_too_few_matches_say_nothing(room):
     assert reason is None and details["epipolar_pairs"] == 0 and details["epipolar_unexplained"] == 0
 
 
-REPORT = WindowReport(6, 2.0, 1.0, 0.0, 0.0, 100, 1000, 10, 1152.0, np.ones(100, bool), 1.0)  # passes the direct measures
+# passes the direct measures
+REPORT = WindowReport(6, 2.0, 1.0, 0.0, 0.0, 100, 1000, 10, 1152.0, np.ones(100, bool), 1.0)
 
 
 def probation_keyframes(room, poses):

@@ -440,8 +440,8 @@ def _optimize_inverse_depths(rays, host, pattern_rays, idepth, color, weight_sq,
 
 @kernel
 def _activation_buffers(n, R, pattern_rays):
-    """The usable mask, the inlier targets and each (host, target) pair's pattern_shifts (outside the parallel function: numba makes
-    its array expressions parallel regions of their own)."""
+    """The usable mask, the inlier targets and each (host, target) pair's pattern_shifts (outside the parallel
+    function: numba makes its array expressions parallel regions of their own)."""
     pattern_shift = np.empty((R.shape[0], R.shape[1], len(pattern_rays), 3))
     for h in range(R.shape[0]):
         for j in range(R.shape[1]):
