@@ -42,10 +42,12 @@ def true_depth_errors(feature_map: FeatureMap, frames_by_index) -> tuple[np.ndar
     return np.array(errors), np.array(mature)
 
 
-def grow(config: FeatureConfig, frames, window_size: int = 7) -> tuple[FeatureMap, list]:
-    """Keyframes at the true poses, a direct window of the last ``window_size`` of them."""
+def grow(config: FeatureConfig, frames, window_size: int = 7,
+         feature_map: FeatureMap | None = None) -> tuple[FeatureMap, list]:
+    """Keyframes at the true poses, a direct window of the last ``window_size`` of them (into ``feature_map``, or
+    a new one)."""
     mapper = FeatureMapper(config, CAMERA, load_vocabulary())
-    feature_map = FeatureMap()
+    feature_map = FeatureMap() if feature_map is None else feature_map
     reports = []
     for position, frame in enumerate(frames):
         window = {f.index for f in frames[max(0, position - window_size + 1):position + 1]}
@@ -146,6 +148,21 @@ def test_redundant_keyframes_leave_once_out_of_the_direct_window():
     assert not window & set(culled)  # never one the direct window still holds
     assert all(k not in feature_map.keyframes for k in culled)
     assert all(k.image is None for k in feature_map.keyframes.values() if k.frame_index not in window)
+
+
+def test_a_keyframe_at_either_end_of_a_loop_stays_though_redundant():
+    """ORB-SLAM2's loop edges: the keyframes of a loop closed before are never culled (a later loop's pose graph
+    holds the place closed through them)."""
+    frames = [SEQUENCE[i] for i in range(0, 60, 2)]
+    _, reports = grow(FeatureConfig(), frames, window_size=5)
+    redundant = [k for r in reports for k in r.culled_keyframes][:2]
+    looped = FeatureMap()
+    looped.loop_edges.add(tuple(redundant))
+    feature_map, reports = grow(FeatureConfig(), frames, window_size=5, feature_map=looped)
+    culled = [k for r in reports for k in r.culled_keyframes]
+    assert culled, "no other keyframe was culled"
+    assert not set(redundant) & set(culled)
+    assert set(redundant) <= set(feature_map.keyframes)
 
 
 def test_poses_follow_the_direct_keyframes(smooth_map):

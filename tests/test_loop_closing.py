@@ -96,6 +96,22 @@ def test_a_closed_loop_brings_the_first_round_onto_the_second(circuit_twice):
     assert first_round_ate(corrected) < 0.8 * first_round_ate(tracked)
 
 
+
+def test_a_closed_loops_keyframes_stay_and_join_every_later_pose_graph(circuit_twice):
+    """ORB-SLAM2's loop edges: the place a loop closed stays closed when a later loop bends the map, though the
+    points the loop fused may be too few for a covisibility edge (with fewer points, the circuit's second loop
+    reopened its first by the first round's drift)."""
+    _, results, odometry = circuit_twice
+    feature_map, closer = odometry.features.map, odometry.features.loop_closer
+    loops = events_of(results, EventKind.LOOP_CLOSED)
+    assert feature_map.loop_edges == {(loop.details["loop_keyframe"], loop.details["keyframe"]) for loop in loops}
+    assert feature_map.loop_keyframes() <= set(feature_map.keyframes)  # never culled
+    row = {keyframe.frame_index: i for i, keyframe in enumerate(feature_map.active_keyframes())}
+    poses = np.array([feature_map.keyframes[f].T_world_cam for f in row])
+    edges = closer._essential_graph(feature_map, row, poses, feature_map.covisibility_graph())
+    assert {(row[older], row[newer]) for older, newer in feature_map.loop_edges} <= {(e.i, e.j) for e in edges}
+
+
 BLACKOUT_FROM, BLACKOUT_FRAMES, MERGE_RUN_FRAMES = 70, 50, 300  # the lens covered for 100 degrees of the turn
 
 

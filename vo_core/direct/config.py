@@ -133,7 +133,7 @@ class ImmatureConfig:
     # DSO's optimizeImmaturePoint makes a new point's residuals only in the keyframes where its activation's ended in;
     # with this off, in every keyframe of the window (each judged at every optimization). Off by default: on the real
     # folders it holds fr1/desk's window through the sweep (the direct method 0.79 -> 0.33 m, DSO's error), but the
-    # synthetic circuit tracks worse and its loop corrections no longer close it (BENCHMARKS.md, Tried and not kept).
+    # synthetic circuit tracks worse and its second loop bends its first round (BENCHMARKS.md, Tried and not kept).
     residuals_only_where_activated: bool = False
 
 

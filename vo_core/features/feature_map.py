@@ -159,6 +159,10 @@ class FeatureMap:
         # A culled keyframe's place in the final trajectory (ORB-SLAM2's spanning tree): the keyframe that shared the
         # most points with it when it left, and its pose relative to that one (T_parent_culled).
         self.culled_parents: dict[int, tuple[int, np.ndarray]] = {}
+        # The places of the loops closed and the maps merged, (older, newer) keyframe (ORB-SLAM2's loop edges): each
+        # stays in the pose graph of every later loop, and its keyframes are never culled, so a place closed once
+        # stays closed when a later loop bends the map.
+        self.loop_edges: set[tuple[int, int]] = set()
 
     def __len__(self) -> int:
         return len(self.keyframes)
@@ -185,6 +189,10 @@ class FeatureMap:
         counts = self.observation_counts(orphans)
         self.points.alive[orphans[counts < 2]] = False
         self._forget_dead()
+
+    def loop_keyframes(self) -> set[int]:
+        """The keyframes at either end of a loop edge."""
+        return {frame_index for edge in self.loop_edges for frame_index in edge}
 
     def final_poses(self) -> dict[int, np.ndarray]:
         """Every keyframe's pose as the map ends: the kept ones' own, a culled one's on its parent's final pose (ORB-
@@ -213,6 +221,7 @@ class FeatureMap:
         for frame_index in [f for f, k in self.keyframes.items() if k.segment == self.segment]:
             self.keyframes.pop(frame_index)
             self.index.remove(frame_index)
+        self.loop_edges = {edge for edge in self.loop_edges if all(f in self.keyframes for f in edge)}
         self.points.alive[self.points.segment == self.segment] = False
         self._forget_dead()
 

@@ -234,14 +234,15 @@ class LocalMapper:
         return held
 
     def cull_keyframes(self, feature_map: FeatureMap, keyframe: FeatureKeyframe) -> list[int]:
-        """ORB-SLAM2 KeyFrameCulling: a covisible keyframe (never the map's first, nor this one) whose points are
-        90 % seen by at least 3 other keyframes is redundant and leaves the map."""
+        """ORB-SLAM2 KeyFrameCulling: a covisible keyframe (never the map's first, this one, nor one at either end of
+        a loop) whose points are 90 % seen by at least 3 other keyframes is redundant and leaves the map."""
         local = self.local
         origin = min(feature_map.keyframes.values(), key=lambda k: k.keyframe_id).frame_index
+        kept = feature_map.loop_keyframes() | {origin}
         culled = []
         graph = feature_map.covisibility_graph()
         for frame_index in graph.covisible_keyframes(keyframe.frame_index, 1):
-            if frame_index == origin:
+            if frame_index in kept:
                 continue
             candidate = feature_map.keyframes[frame_index]
             points = candidate.point_ids[candidate.observed()]

@@ -174,6 +174,7 @@ class LoopCloser:
             else:
                 report.merge = self.merge(feature_map, keyframe, candidate.frame_index, verified)
             self.last_loop_id, self.groups = keyframe.keyframe_id, []
+            feature_map.loop_edges.add((candidate.frame_index, keyframe.frame_index))
             for other in report.candidates:  # one loop per keyframe, as ORB-SLAM2
                 if other is not candidate and not other.why:
                     other.why = f"another candidate ({candidate.frame_index}) closed the loop"
@@ -437,11 +438,13 @@ class LoopCloser:
 
     def _essential_graph(self, feature_map: FeatureMap, row: dict[int, int], poses: np.ndarray,
                          graph: Covisibility) -> list[PoseGraphEdge]:
-        """Consecutive keyframes (the odometry) and strongly covisible pairs, each at its present relative pose,
-        as sure of it as their shared points make it (``_shared_information``); ``row``: each keyframe's node, in
-        order of creation."""
+        """Consecutive keyframes (the odometry), strongly covisible pairs and the loop edges of the loops closed
+        before (ORB-SLAM2's: their fused points may be too few for a covisibility edge), each at its present relative
+        pose, as sure of it as their shared points make it (``_shared_information``); ``row``: each keyframe's node,
+        in order of creation."""
         frames = list(row)
         pairs = {(i, i + 1) for i in range(len(frames) - 1)}
+        pairs |= {(row[older], row[newer]) for older, newer in feature_map.loop_edges if older in row and newer in row}
         for i, frame_index in enumerate(frames):
             for other in graph.covisible_keyframes(frame_index, self.config.essential_min_weight):
                 if other in row:  # the active map's

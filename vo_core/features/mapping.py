@@ -364,11 +364,13 @@ class FeatureMapper:
 
     def cull_keyframes(self, feature_map: FeatureMap) -> list[int]:
         """FDMO 4.4 (ORB-SLAM2 KeyFrameCulling): a keyframe whose points are 90 % seen by at least 3 other
-        keyframes is removed, once its direct twin has left the window."""
+        keyframes is removed, once its direct twin has left the window; never one at either end of a loop (ORB-SLAM2's
+        loop edges keep theirs)."""
         maintenance = self.config.maintenance
         culled = []
         counts = None  # every point's observers, counted once until a keyframe leaves
-        for frame_index in [k.frame_index for k in feature_map.keyframes.values() if not k.in_direct_window]:
+        looped = feature_map.loop_keyframes()
+        for frame_index in [f for f, k in feature_map.keyframes.items() if not k.in_direct_window and f not in looped]:
             keyframe = feature_map.keyframes[frame_index]
             point_ids = keyframe.point_ids[keyframe.point_ids >= 0]
             if len(point_ids) == 0:
