@@ -159,9 +159,10 @@ class FeatureMap:
         # A culled keyframe's place in the final trajectory (ORB-SLAM2's spanning tree): the keyframe that shared the
         # most points with it when it left, and its pose relative to that one (T_parent_culled).
         self.culled_parents: dict[int, tuple[int, np.ndarray]] = {}
-        # The places of the loops closed and the maps merged, (older, newer) keyframe (ORB-SLAM2's loop edges): each
-        # stays in the pose graph of every later loop, and its keyframes are never culled, so a place closed once
-        # stays closed when a later loop bends the map.
+        # The places of the loops closed, (older, newer) keyframe (ORB-SLAM2's loop edges): each stays in the pose graph
+        # of every later loop, and its keyframes are never culled, so a place closed once stays closed when a later
+        # loop bends the map. A merge is not one: it moves the older map rigidly, untested by a pose graph, and a
+        # later loop must be free to bend a wrong one (parking, a place merged from 9.9 m apart, put a map 10 m off).
         self.loop_edges: set[tuple[int, int]] = set()
 
     def __len__(self) -> int:

@@ -171,10 +171,10 @@ class LoopCloser:
                 report.loop = self.correct(feature_map, graph, keyframe, candidate, verified, window)
                 if report.loop is None:
                     continue
+                feature_map.loop_edges.add((candidate.frame_index, keyframe.frame_index))
             else:
                 report.merge = self.merge(feature_map, keyframe, candidate.frame_index, verified)
             self.last_loop_id, self.groups = keyframe.keyframe_id, []
-            feature_map.loop_edges.add((candidate.frame_index, keyframe.frame_index))
             for other in report.candidates:  # one loop per keyframe, as ORB-SLAM2
                 if other is not candidate and not other.why:
                     other.why = f"another candidate ({candidate.frame_index}) closed the loop"
