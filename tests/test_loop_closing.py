@@ -96,7 +96,6 @@ def test_a_closed_loop_brings_the_first_round_onto_the_second(circuit_twice):
     assert first_round_ate(corrected) < 0.8 * first_round_ate(tracked)
 
 
-
 def test_a_closed_loops_keyframes_stay_and_join_every_later_pose_graph(circuit_twice):
     """ORB-SLAM2's loop edges: the place a loop closed stays closed when a later loop bends the map, though the
     points the loop fused may be too few for a covisibility edge (with fewer points, the circuit's second loop

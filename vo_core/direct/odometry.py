@@ -127,6 +127,12 @@ class Keyframe:
         self.active_grad_sq = np.concatenate([self.active_grad_sq, grad_sq])
 
 
+def _targets_of(host: Keyframe, window: list[Keyframe]) -> list[int]:
+    """The window positions of a host's activation targets, in the order its activation sees them: every other
+    keyframe of the window."""
+    return [i for i, k in enumerate(window) if k is not host]
+
+
 def _drop_residuals_not_in(host: Keyframe, targets: list[Keyframe], not_in: np.ndarray) -> None:
     """Points about to be activated in ``host`` have no residual in the targets where their activation's was not
     in (``not_in``: (new points, targets)): DSO's optimizeImmaturePoint makes a PointFrameResidual only for the
@@ -846,7 +852,7 @@ class DirectOdometry:
         ):
             immature, activating = keyframe.immature, chosen.index[usable]
             if self.config.immature.residuals_only_where_activated:
-                targets = [k for k in window if k is not keyframe]  # the activation's targets, in its order
+                targets = [window[i] for i in _targets_of(keyframe, window)]
                 _drop_residuals_not_in(keyframe, targets, ~inliers[usable])
             keyframe.add_active(immature.uv[activating], idepth[usable], immature.color[activating],
                                 immature.host_grad_sq[activating])
@@ -923,7 +929,7 @@ class DirectOdometry:
                             images: tuple[np.ndarray, np.ndarray]) -> ActivationTargets:
         """Every other keyframe of the ``window`` (the new one included), as seen from ``host``; ``T_cam_world`` are
         the window's inverse poses, ``images`` its intensities in their slots (WindowOptimizer.window_images)."""
-        others = [i for i, k in enumerate(window) if k is not host]
+        others = _targets_of(host, window)
         store, slots = images
         return ActivationTargets(
             self.camera, store, slots[others],
