@@ -473,3 +473,34 @@ def test_a_hold_no_frame_ends_begins_a_new_map_as_any_loss_does():
     new_map = [e for r in results for e in r.events if e.kind is EventKind.REINITIALIZATION]
     assert new_map and new_map[0].frame_index == caught + 4 and new_map[0].details["from_scratch"]
     assert all(r.T_world_cam is None for r in results[caught + 1:caught + 5])
+
+
+def test_a_start_whose_keyframe_the_feature_map_contradicts_fails_and_the_next_one_carries_the_run(clean_ate):
+    """A keyframe of a start on probation is checked against the feature map as any other (fdmo/decide.judge_keyframe);
+    where the feature map contradicts it, the start fails (the feature map holds that start's own points: the two
+    halves of one start disagree), reported as a rejected start with the check's numbers, and its feature map goes with
+    it. The contradiction is injected at the start's first checked keyframe (a conclusive check that explains a fifth
+    of its matches); the next start carries the run."""
+    from vo_core.features.mapping import KeyframeCheck
+
+    odometry = Odometry(load_config(overrides=["method=fdmo"]), CAMERA)
+    check_keyframe, contradicted = odometry.features.check_keyframe, []
+
+    def contradicting(frame_index, *args):
+        check = check_keyframe(frame_index, *args)
+        if check is None or contradicted or not odometry.direct.on_probation:
+            return check
+        contradicted.append(frame_index)
+        return KeyframeCheck(check.T_world_cam, inliers=60, found_fraction=0.4, explained=0.2, in_view=150)
+
+    odometry.features.check_keyframe = contradicting
+    results = [odometry.track(frame) for frame in SMOOTH]
+    rejected = [e for r in results for e in r.events if e.kind is EventKind.INITIALIZATION_REJECTED]
+    assert contradicted and len(rejected) == 1
+    assert f"at keyframe {contradicted[0]}, the feature map disagrees" in rejected[0].details["reason"]
+    assert rejected[0].frame_index == next(r.frame_index for r in results if r.frame_index > contradicted[0])
+    assert min(odometry.features.map.keyframes) > contradicted[0]  # the failed start's feature map went with it
+    assert kinds(results).count(EventKind.INITIALIZATION_SUCCEEDED) == 2
+    retracted = set(rejected[0].details["retracted"])  # the failed start's poses, taken back from the files
+    kept = [r for r in results if r.timestamp not in retracted]
+    assert evaluate(posed_trajectory(kept), SMOOTH.ground_truth)["ate"]["rmse"] < 1.5 * clean_ate + 1e-3

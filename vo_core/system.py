@@ -693,13 +693,17 @@ class Odometry:
         one it overrules it holds still (``held``): the poses of the keyframes after it, and the points they would
         make, are the drifted direct map's, and would pull the feature map with it. Each is checked, and joins where
         the feature map agrees with it again or no longer sees the view; a frame going on from the feature map's pose
-        ends the hold too (``_continue_from``)."""
+        ends the hold too (``_continue_from``). A keyframe of a start on probation that the feature map contradicts
+        fails the start instead (its feature map is that start's own)."""
         for keyframe in new:
             start = time.perf_counter()
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
                                                  keyframe.made_at, keyframe.median_depth)
             checked = {} if check is None else {"check": check.details()}
             refused = judge_keyframe(check, keyframe.start_on_probation, self.held is not None, self.config)
+            if refused is not None and keyframe.start_on_probation:
+                self.direct.fail_start(f"at keyframe {keyframe.frame_index}, {refused}")
+                break  # the start goes at the next frame, and its feature map with it (_forget_rejected_start)
             if refused is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,
                       {"keyframe": keyframe.frame_index, "reason": refused, **checked})

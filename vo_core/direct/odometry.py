@@ -480,6 +480,12 @@ class DirectOdometry:
             return self.start_check.witness_failure()
         return self.start_failure
 
+    def fail_start(self, reason: str) -> None:
+        """A witness outside the direct half failed the start on probation (the feature map's check of its keyframes,
+        fdmo/decide.judge_keyframe): it is discarded at the next frame (``discard_failed_start``)."""
+        if self.start_check is not None and self.start_failure is None:
+            self.start_failure = reason
+
     def discard_failed_start(self, frame: DirectFrame, result: FrameResult) -> bool:
         """Where a keyframe mapped off the tracking thread, or the witness beside mapping, failed the start on
         probation: the start is discarded and the initializer starts again from this frame (which gets no pose).
@@ -776,8 +782,9 @@ class DirectOdometry:
 
     def _check_start(self, report: WindowReport) -> None:
         """One more window optimization for the start on probation: it fails (``start_failure`` says why) or,
-        after enough of them, it has proven itself (``start_check.passed``)."""
-        self.start_failure = self.start_check.observe(report, self.keyframes)
+        after enough of them, it has proven itself (``start_check.passed``). A failure already found stands."""
+        failure = self.start_check.observe(report, self.keyframes)
+        self.start_failure = self.start_failure or failure
 
     def _discard_start(self, frame: DirectFrame, result: FrameResult) -> None:
         """A start failed its check: the map goes, the frame gets no pose (it was posed in that map), the poses the

@@ -130,10 +130,10 @@ def _suspect(evidence: Evidence, config) -> Decision | str:
 
 
 def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, held: bool, config) -> str | None:
-    """Why a new direct keyframe does not join the feature map, None where it joins. The evidence is a suspect frame's
-    (``_suspect``): the feature map's pose for the keyframe, searched around the direct one (KeyframeCheck). The feature
-    map is the reference the direct map is judged by only where it sees the view: at least a recovery's 30 points in
-    view (``features.recovery.min_inliers``, FDMO's 30).
+    """Why a new direct keyframe does not join the feature map (one of a start on probation: why the start fails), None
+    where it joins. The evidence is a suspect frame's (``_suspect``): the feature map's pose for the keyframe, searched
+    around the direct one (KeyframeCheck). The feature map is the reference the direct map is judged by only where it
+    sees the view: at least a recovery's 30 points in view (``features.recovery.min_inliers``, FDMO's 30).
 
     - It overrules the direct pose where it would be taken as a recovery (30 inliers), found a conclusive share of the
       map points in view (``features.recovery.conclusive_found_fraction``), and most of its matches contradict the
@@ -149,13 +149,19 @@ def judge_keyframe(check: KeyframeCheck | None, start_on_probation: bool, held: 
       30 inliers, ``agreement`` of them explained) or the view has left it (nothing to judge by: the direct
       map is then all there is), or a frame went on from its pose (system.py). A feature map that followed the next
       keyframes would hold the wrong map's points, and every later recovery would bring its scale back.
-
-    A start on probation is not judged: the feature map then holds only that start's own points, and the start check
-    judges it with a witness of its own (direct/start_check.py; the drone clip at half its frame rate: the start's
-    keyframe overruled 3 optimizations after the hand-over, 10 % explained, restarted from 86 feature depths, 0.060 ->
-    0.478 m)."""
+    - A keyframe of a start on probation is judged as if nothing were held, and where the feature map disagrees the
+      start fails (system.py; direct/start_check.py judges it too): the feature map then holds only that start's own
+      points, triangulated at its first poses, so a window that moved its keyframes away from them has rebuilt the
+      start's structure rather than refined it, the two halves of one start that no longer agree. Overruling the
+      keyframe instead, and restarting the direct map from the feature map, restarted the wrong start (the drone clip
+      at half its frame rate, seed 1: 10 % explained 3 optimizations after the hand-over, restarted from 86 feature
+      depths, 0.060 -> 0.478 m; the start check refused that start later on its own). Across the real-data matrix
+      (fdmo, seeds 0-2, strides 1-3) two starts fail so: that one (12 % of 95 matches, at its third keyframe) and
+      fr1/desk's at half its frame rate, seed 2 (28 % of 54, at its second), a start the start check had kept while its
+      map shrank 16-47x (0.598 -> 0.428 m)."""
     fdmo, recovery = config.fdmo, config.features.recovery
-    if start_on_probation or check is None or check.in_view < recovery.min_inliers:
+    held = held and not start_on_probation
+    if check is None or check.in_view < recovery.min_inliers:
         return None
     recovery_grade = check.inliers >= recovery.min_inliers
     agrees = recovery_grade and check.explained >= fdmo.agreement
