@@ -702,7 +702,7 @@ class Odometry:
             checked = {} if check is None else {"check": check.details()}
             refused = judge_keyframe(check, keyframe.start_on_probation, self.held is not None, self.config)
             if refused is not None and keyframe.start_on_probation:
-                self.direct.fail_start(f"at keyframe {keyframe.frame_index}, {refused}")
+                self.direct.fail_start(keyframe.frame_index, f"at keyframe {keyframe.frame_index}, {refused}")
                 break  # the start goes at the next frame, and its feature map with it (_forget_rejected_start)
             if refused is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,

@@ -480,10 +480,12 @@ class DirectOdometry:
             return self.start_check.witness_failure()
         return self.start_failure
 
-    def fail_start(self, reason: str) -> None:
-        """A witness outside the direct half failed the start on probation (the feature map's check of its keyframes,
-        fdmo/decide.judge_keyframe): it is discarded at the next frame (``discard_failed_start``)."""
-        if self.start_check is not None and self.start_failure is None:
+    def fail_start(self, keyframe_index: int, reason: str) -> None:
+        """A witness outside the direct half failed the start on probation at its keyframe ``keyframe_index`` (the
+        feature map's check, fdmo/decide.judge_keyframe): it is discarded at the next frame (``discard_failed_start``).
+        Not a later start: with mapping threads the witness may answer after the start it judged is gone."""
+        check = self.start_check
+        if check is not None and self.start_failure is None and keyframe_index >= check.first_frame_index:
             self.start_failure = reason
 
     def discard_failed_start(self, frame: DirectFrame, result: FrameResult) -> bool:
