@@ -249,15 +249,17 @@ def test_a_rejected_start_takes_its_feature_map_with_it(threaded):
 
 def test_a_witness_outside_the_direct_half_fails_only_the_start_it_judged():
     """``fail_start`` (the feature map's check of a start's keyframe): with mapping threads the answer may come after
-    the start it judged is gone; a later start on probation is not failed by it, the start it judged is, and a first
-    failure stands."""
+    the start it judged is gone or has passed; neither a later start on probation nor a start that passed is failed by
+    it, the start it judged is, and a first failure stands."""
     from types import SimpleNamespace
 
     sequence = make_sequence("smooth", 4, 0, WIDTH, HEIGHT)
     direct = Odometry(load_config(overrides=["method=direct"]), sequence.camera).direct
-    direct.start_check = SimpleNamespace(first_frame_index=40, witness_failure=lambda: None)
-    direct.fail_start(36, "a keyframe of the start before")
+    direct.start_check = SimpleNamespace(first_frame_index=40, passed=True, witness_failure=lambda: None)
+    assert not direct.fail_start(44, "a start that has passed")
+    direct.start_check.passed = False
+    assert not direct.fail_start(36, "a keyframe of the start before")
     assert direct.failed_start is None
-    direct.fail_start(44, "the feature map disagrees")
-    direct.fail_start(48, "later")
+    assert direct.fail_start(44, "the feature map disagrees")
+    assert direct.fail_start(48, "later")
     assert direct.failed_start == "the feature map disagrees"

@@ -701,8 +701,8 @@ class Odometry:
                                                  keyframe.made_at, keyframe.median_depth)
             checked = {} if check is None else {"check": check.details()}
             refused = judge_keyframe(check, keyframe.start_on_probation, self.held is not None, self.config)
-            if refused is not None and keyframe.start_on_probation:
-                self.direct.fail_start(keyframe.frame_index, f"at keyframe {keyframe.frame_index}, {refused}")
+            if (refused is not None and keyframe.start_on_probation
+                    and self.direct.fail_start(keyframe.frame_index, f"at keyframe {keyframe.frame_index}, {refused}")):
                 break  # the start goes at the next frame, and its feature map with it (_forget_rejected_start)
             if refused is not None:
                 _emit(result, EventKind.KEYFRAME_OVERRULED,

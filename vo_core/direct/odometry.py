@@ -480,13 +480,15 @@ class DirectOdometry:
             return self.start_check.witness_failure()
         return self.start_failure
 
-    def fail_start(self, keyframe_index: int, reason: str) -> None:
+    def fail_start(self, keyframe_index: int, reason: str) -> bool:
         """A witness outside the direct half failed the start on probation at its keyframe ``keyframe_index`` (the
         feature map's check, fdmo/decide.judge_keyframe): it is discarded at the next frame (``discard_failed_start``).
-        Not a later start: with mapping threads the witness may answer after the start it judged is gone."""
-        check = self.start_check
-        if check is not None and self.start_failure is None and keyframe_index >= check.first_frame_index:
-            self.start_failure = reason
+        Returns whether that start is failing now. Neither a later start nor one that has passed since: with mapping
+        threads the witness may answer after the start it judged is gone or proven."""
+        if not self.on_probation or keyframe_index < self.start_check.first_frame_index:
+            return False
+        self.start_failure = self.start_failure or reason
+        return True
 
     def discard_failed_start(self, frame: DirectFrame, result: FrameResult) -> bool:
         """Where a keyframe mapped off the tracking thread, or the witness beside mapping, failed the start on
