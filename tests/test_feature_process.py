@@ -156,3 +156,22 @@ def test_the_process_runs_at_the_priority_it_is_given(idle):
         assert (os.sched_getscheduler(pid) == os.SCHED_IDLE) == idle
     finally:
         features.close()
+
+
+def test_a_keyframe_described_ahead_is_checked_from_that_description_when_its_image_comes_as_a_copy(monkeypatch):
+    """Through the process's pipe every call brings its own copy of the image: the keyframe described beside the
+    caller (describe_ahead) must still serve its check, not be described and checked again on the caller's wait."""
+    features = FeatureOdometry(FeatureConfig(), SEQUENCE.camera)
+    grow(features)
+    described = []
+    original = features._described_and_checked
+    monkeypatch.setattr(features, "_described_and_checked", lambda *args: described.append(args[0]) or original(*args))
+    frame = SEQUENCE[10]
+    features.describe_ahead(frame.index, frame.timestamp, frame.image, frame.T_world_cam)
+    check = features.check_keyframe(frame.index, frame.timestamp, frame.image.copy(), frame.T_world_cam, 1.0)
+    assert described == [frame.index] and check is not None and check.inliers >= 30
+    other = SEQUENCE[11]
+    features.describe_ahead(frame.index, frame.timestamp, frame.image, frame.T_world_cam)
+    features.check_keyframe(frame.index, frame.timestamp, other.image, frame.T_world_cam, 1.0)
+    assert described == [frame.index] * 3  # another image: described again
+    features.close()

@@ -255,6 +255,8 @@ class _Ahead:
     result: Future  # (FeatureKeyframe, KeyframeCheck | None)
 
     def serves(self, frame_index: int, image: np.ndarray, T_world_cam: np.ndarray, next_keyframe_id: int) -> bool:
-        """(Asked once the result is there.) The keyframe described took the map's next id when it ran."""
-        return (self.frame_index == frame_index and self.image is image and np.array_equal(self.T_world_cam, T_world_cam)
+        """(Asked once the result is there.) The keyframe described took the map's next id when it ran. The image is
+        the same object in this process, an equal copy where the calls came through the feature process's pipe."""
+        return (self.frame_index == frame_index and (self.image is image or np.array_equal(self.image, image))
+                and np.array_equal(self.T_world_cam, T_world_cam)
                 and self.result.result()[0].keyframe_id == next_keyframe_id)
