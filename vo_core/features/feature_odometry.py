@@ -178,7 +178,8 @@ class FeatureOdometry:
         or changes the map next waits for it (``_finish_ahead``): the mapper's extractor is used by one thread at a
         time. Queued behind a growth in flight, it checks against the map that growth leaves."""
         T_world_cam = np.array(T_world_cam, float)
-        result = self._worker_pool().submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam, 0.0)
+        result = self._worker_pool().submit(self._described_and_checked, frame_index, timestamp, image, T_world_cam,
+                                            0.0)
         self.ahead = _Ahead(frame_index, image, T_world_cam, result)
 
     def add_initial_tracks(self, first: int, second: int, uv_first: np.ndarray, uv_second: np.ndarray,
