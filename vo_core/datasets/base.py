@@ -20,7 +20,7 @@ import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import cv2
 import numpy as np
@@ -30,6 +30,9 @@ from vo_core.geometry.camera import CameraModel, PinholeCamera, camera_to_dict
 from vo_core.geometry.photometric import PhotometricCalibration
 from vo_core.geometry.undistorter import OutputSpec, Undistorter
 from vo_core.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from vo_core.datasets.calibration import CameraFile
 
 
 BAD_IMAGE_POLICIES = ("skip", "abort")
@@ -235,6 +238,16 @@ class Sequence(FrameSelection):
         self._undistorter = rectification(raw_camera, options.undistort_output, calibration_output, root)
         self._selection = np.arange(len(images))
         self._check_image_size()
+
+    @classmethod
+    def of_image_files(cls, root: Path, layout: str, options: LoadOptions, calibration: CameraFile,
+                       image_paths: list[Path], timestamps: np.ndarray, ground_truth: Trajectory | None,
+                       name: str | None = None) -> Sequence:
+        """A sequence stored one image file per frame (every layout but zip archives and videos), with the camera
+        of ``calibration``; named after its folder unless ``name`` is given."""
+        return cls(name=name or root.name, layout=layout, root=root, raw_camera=calibration.camera,
+                   images=ImageFiles(image_paths), timestamps=timestamps, options=options, ground_truth=ground_truth,
+                   calibration_output=calibration.output)
 
     # ------------------------------------------------------------------------------------------- views
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
+from vo_core.datasets.base import LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
 from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, read_yaml, split_fields, text_lines
 from vo_core.errors import InputError
@@ -46,17 +46,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     if options.camera_file is not None:
         calibration = load_camera_file(options.camera_file)
     sequence_root = mav0.parent if path == mav0 else path
-    return Sequence(
-        name=sequence_root.name,
-        layout=NAME,
-        root=path,
-        raw_camera=calibration.camera,
-        images=ImageFiles(image_paths),
-        timestamps=timestamps,
-        options=options,
-        ground_truth=_ground_truth(mav0, sequence_root, T_body_cam, timestamps),
-        calibration_output=calibration.output,
-    )
+    return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
+                                   _ground_truth(mav0, sequence_root, T_body_cam, timestamps), sequence_root.name)
 
 
 def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:

@@ -23,7 +23,6 @@ from pathlib import Path
 import numpy as np
 
 from vo_core.datasets.base import (
-    ImageFiles,
     LoadOptions,
     Sequence,
     check_ground_truth_overlap,
@@ -65,17 +64,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     image_folder = _image_folder(path)
     image_paths, timestamps = _images_and_timestamps(path, image_folder)
     calibration = load_camera_file(_camera_file(path, image_folder, options))
-    return Sequence(
-        name=path.name,
-        layout=NAME,
-        root=path,
-        raw_camera=calibration.camera,
-        images=ImageFiles(image_paths),
-        timestamps=timestamps,
-        options=options,
-        ground_truth=_ground_truth(path / "groundtruth.txt", timestamps),
-        calibration_output=calibration.output,
-    )
+    return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
+                                   _ground_truth(path / "groundtruth.txt", timestamps))
 
 
 def _images_and_timestamps(folder: Path, image_folder: Path) -> tuple[list[Path], np.ndarray]:

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, fill_numbering_gaps, image_size
+from vo_core.datasets.base import LoadOptions, Sequence, fill_numbering_gaps, image_size
 from vo_core.datasets.calibration import CameraFile, load_camera_file
 from vo_core.datasets.textfiles import (
     check_increasing,
@@ -61,17 +61,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         calibration = load_camera_file(options.camera_file)
     else:
         calibration = CameraFile(_camera(path / "calib.txt", IMAGE_FOLDERS[image_folder.name], image_paths[0]))
-    return Sequence(
-        name=path.name,
-        layout=NAME,
-        root=path,
-        raw_camera=calibration.camera,
-        images=ImageFiles(image_paths),
-        timestamps=timestamps,
-        options=options,
-        ground_truth=_ground_truth(path, frame_numbers, timestamps),
-        calibration_output=calibration.output,
-    )
+    return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
+                                   _ground_truth(path, frame_numbers, timestamps))
 
 
 def _frame_numbers(image_paths: list[Path]) -> np.ndarray:

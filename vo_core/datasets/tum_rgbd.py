@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import ImageFiles, LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
+from vo_core.datasets.base import LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
 from vo_core.datasets.calibration import CameraFile, find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, parse_numbers, split_fields, text_lines
 from vo_core.errors import InputError
@@ -41,18 +41,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     list_file = path / "rgb.txt"
     timestamps, image_paths = read_image_list(list_file)
     calibration = _calibration(path, list_file, options)
-    ground_truth = _ground_truth(path / "groundtruth.txt", timestamps)
-    return Sequence(
-        name=path.name,
-        layout=NAME,
-        root=path,
-        raw_camera=calibration.camera,
-        images=ImageFiles(image_paths),
-        timestamps=timestamps,
-        options=options,
-        ground_truth=ground_truth,
-        calibration_output=calibration.output,
-    )
+    return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
+                                   _ground_truth(path / "groundtruth.txt", timestamps))
 
 
 def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 
 from vo_core.datasets.base import (
-    ImageFiles,
     LoadOptions,
     Sequence,
     fill_numbering_gaps,
@@ -44,17 +43,8 @@ def load(path: Path, options: LoadOptions) -> Sequence:
         calibration = load_camera_file(options.camera_file)
     else:
         calibration = CameraFile(_camera(path / "K.txt", found[0]))
-    return Sequence(
-        name=path.name,
-        layout=NAME,
-        root=path,
-        raw_camera=calibration.camera,
-        images=ImageFiles(image_paths),
-        timestamps=timestamps,
-        options=options,
-        ground_truth=_ground_truth(path / "poses.txt", timestamps),
-        calibration_output=calibration.output,
-    )
+    return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
+                                   _ground_truth(path / "poses.txt", timestamps))
 
 
 def _camera(k_file: Path, first_image: Path) -> PinholeCamera:
