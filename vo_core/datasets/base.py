@@ -29,7 +29,7 @@ from vo_core.errors import InputError
 from vo_core.geometry.camera import CameraModel, PinholeCamera, camera_to_dict
 from vo_core.geometry.photometric import PhotometricCalibration
 from vo_core.geometry.undistorter import OutputSpec, Undistorter
-from vo_core.trajectory import Trajectory
+from vo_core.trajectory import Trajectory, read_trajectory
 
 if TYPE_CHECKING:
     from vo_core.datasets.calibration import CameraFile
@@ -154,6 +154,15 @@ def check_ground_truth_overlap(ground_truth: Trajectory, timestamps: np.ndarray,
             f"{path}: ground truth spans {first:.3f}..{last:.3f} s, which does not overlap the images "
             f"({timestamps.min():.3f}..{timestamps.max():.3f} s)"
         )
+
+
+def tum_ground_truth(path: Path, timestamps: np.ndarray) -> Trajectory | None:
+    """The ground truth in a TUM file at ``path``, where there is one, checked against the frames' times."""
+    if not path.is_file():
+        return None
+    ground_truth = read_trajectory(path, format="tum")
+    check_ground_truth_overlap(ground_truth, timestamps, path)
+    return ground_truth
 
 
 @dataclass(frozen=True)

@@ -25,14 +25,14 @@ import numpy as np
 from vo_core.datasets.base import (
     LoadOptions,
     Sequence,
-    check_ground_truth_overlap,
     natural_sort_key,
     nominal_timestamps,
+    tum_ground_truth,
 )
 from vo_core.datasets.calibration import find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, data_line_numbers, read_table
 from vo_core.errors import InputError
-from vo_core.trajectory import MIN_NANOSECOND_TIMESTAMP, read_trajectory, seconds_from_nanoseconds
+from vo_core.trajectory import MIN_NANOSECOND_TIMESTAMP, seconds_from_nanoseconds
 
 NAME = "image_folder"
 LOOKS_FOR = "image files, or images/, with camera.yaml (image folder)"
@@ -65,7 +65,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     image_paths, timestamps = _images_and_timestamps(path, image_folder)
     calibration = load_camera_file(_camera_file(path, image_folder, options))
     return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
-                                   _ground_truth(path / "groundtruth.txt", timestamps))
+                                   tum_ground_truth(path / "groundtruth.txt", timestamps))
 
 
 def _images_and_timestamps(folder: Path, image_folder: Path) -> tuple[list[Path], np.ndarray]:
@@ -109,11 +109,3 @@ def _time_in_name(stem: str) -> float | None:
     if float(stem) >= MIN_NANOSECOND_TIMESTAMP:
         return seconds_from_nanoseconds(stem)
     return float(stem) if "." in stem else None
-
-
-def _ground_truth(path: Path, timestamps: np.ndarray):
-    if not path.is_file():
-        return None
-    ground_truth = read_trajectory(path, format="tum")
-    check_ground_truth_overlap(ground_truth, timestamps, path)
-    return ground_truth

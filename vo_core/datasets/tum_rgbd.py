@@ -13,12 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from vo_core.datasets.base import LoadOptions, Sequence, check_files_exist, check_ground_truth_overlap
+from vo_core.datasets.base import LoadOptions, Sequence, check_files_exist, tum_ground_truth
 from vo_core.datasets.calibration import CameraFile, find_camera_file, load_camera_file
 from vo_core.datasets.textfiles import check_increasing, parse_numbers, split_fields, text_lines
 from vo_core.errors import InputError
 from vo_core.geometry.camera import PinholeCamera, RadTanCamera
-from vo_core.trajectory import read_trajectory
 
 NAME = "tum_rgbd"
 LOOKS_FOR = "rgb.txt (TUM RGB-D)"
@@ -42,7 +41,7 @@ def load(path: Path, options: LoadOptions) -> Sequence:
     timestamps, image_paths = read_image_list(list_file)
     calibration = _calibration(path, list_file, options)
     return Sequence.of_image_files(path, NAME, options, calibration, image_paths, timestamps,
-                                   _ground_truth(path / "groundtruth.txt", timestamps))
+                                   tum_ground_truth(path / "groundtruth.txt", timestamps))
 
 
 def read_image_list(list_file: Path) -> tuple[np.ndarray, list[Path]]:
@@ -84,11 +83,3 @@ def _freiburg_in_header(list_file: Path) -> int | None:
 def _freiburg_in(text: str) -> int | None:
     match = _FREIBURG.search(text)
     return int(match.group(1)) if match else None
-
-
-def _ground_truth(path: Path, timestamps: np.ndarray):
-    if not path.is_file():
-        return None
-    ground_truth = read_trajectory(path, format="tum")
-    check_ground_truth_overlap(ground_truth, timestamps, path)
-    return ground_truth
