@@ -121,6 +121,25 @@ def test_only_wrong_matches_give_nothing():
     assert ransac_sim3(matches, CAMERA, np.random.default_rng(0), **RANSAC) is None
 
 
+def test_the_minimal_sets_fitted_and_scored_at_once_are_the_one_by_one_closed_forms_and_inlier_tests():
+    from vo_core.geometry.sim3_solver import _closed_form_sim3, _inliers_of_each, _minimal_similarities
+
+    rng = np.random.default_rng(13)
+    matches, _ = scene(rng, true_similarity(1.7), 60, 0.4)
+    samples = np.array([rng.choice(60, size=3, replace=False) for _ in range(100)])
+    samples[0] = [4, 4, 4]  # three times one point: no similarity
+    similarities, fitted = _minimal_similarities(matches, samples)
+    inliers = _inliers_of_each(matches, CAMERA, similarities, fitted, CHI2)
+    for sample, S_a_b, fits, model_inliers in zip(samples, similarities, fitted, inliers):
+        one = _closed_form_sim3(matches.subset(sample))
+        assert fits == (one is not None)
+        if one is None:
+            assert not model_inliers.any()
+            continue
+        np.testing.assert_allclose(S_a_b, one, atol=1e-12)
+        np.testing.assert_array_equal(model_inliers, reprojection_inliers(matches, CAMERA, one, CHI2))
+
+
 def test_one_seed_gives_one_answer():
     matches, _ = scene(np.random.default_rng(11), true_similarity(0.6), 60, 0.4)
     first, second = (ransac_sim3(matches, CAMERA, np.random.default_rng(42), **RANSAC) for _ in range(2))
