@@ -117,22 +117,32 @@ def umeyama(source: np.ndarray, target: np.ndarray, with_scale: bool) -> tuple[n
     """(R, t, s) minimizing sum_i ||target_i - (s R source_i + t)||^2 for (N, 3) point sets (Umeyama 1991).
 
     ValueError when a scale is asked of source points that all coincide (it is then undefined)."""
-    mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
-    centred_source, centred_target = source - mean_source, target - mean_target
-    variance_source = np.mean(np.sum(centred_source**2, axis=1))  # sigma_x^2, eq. (36)
-    covariance = centred_target.T @ centred_source / len(source)  # Sigma_xy, eq. (38)
+    R, t, s, variance_source = _umeyama_of_each(source[None], target[None], with_scale)
+    if with_scale and not variance_source[0] > 0.0:
+        raise ValueError("umeyama: the source points all coincide, the scale is undefined")
+    return R[0], t[0], float(s[0])
+
+
+def _umeyama_of_each(source: np.ndarray, target: np.ndarray,
+                     with_scale: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``umeyama`` of K pairs of point sets at once, (K, N, 3) each: R (K, 3, 3), t (K, 3), s (K,) (inf or nan where
+    the source points coincide) and the source's variance sigma_x^2 (K,)."""
+    mean_source, mean_target = source.mean(axis=1), target.mean(axis=1)
+    centred_source, centred_target = source - mean_source[:, None], target - mean_target[:, None]
+    variance_source = np.mean(np.sum(centred_source**2, axis=2), axis=1)  # sigma_x^2, eq. (36)
+    covariance = np.swapaxes(centred_target, 1, 2) @ centred_source / source.shape[1]  # Sigma_xy, eq. (38)
     U, d, Vt = np.linalg.svd(covariance)
     # S = diag(1, 1, -1) when det(U) det(V) < 0: the best proper rotation, not a reflection, eq. (43)
-    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0])
-    R = U @ np.diag(signs) @ Vt  # eq. (40)
+    signs = np.ones_like(d)
+    signs[:, 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0.0, -1.0, 1.0)
+    R = (U * signs[:, None, :]) @ Vt  # eq. (40)
     if with_scale:
-        if not variance_source > 0.0:
-            raise ValueError("umeyama: the source points all coincide, the scale is undefined")
-        s = float(d @ signs / variance_source)  # c = tr(D S) / sigma_x^2, eq. (42)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.sum(d * signs, axis=1) / variance_source  # c = tr(D S) / sigma_x^2, eq. (42)
     else:
-        s = 1.0
-    t = mean_target - s * R @ mean_source  # eq. (41)
-    return R, t, s
+        s = np.ones(len(source))
+    t = mean_target - ((s[:, None, None] * R) @ mean_source[:, :, None])[:, :, 0]  # eq. (41)
+    return R, t, s, variance_source
 
 
 def _closed_form_sim3(matches: Sim3Matches) -> np.ndarray | None:
@@ -231,19 +241,10 @@ def ransac_sim3(matches: Sim3Matches, camera: PinholeCamera, rng: np.random.Gene
 def _minimal_similarities(matches: Sim3Matches, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``_closed_form_sim3`` of each minimal set (rows of ``samples``, (K, 3) match indices) at once: S_a_b (K, 4, 4)
     and whether each set fixes a similarity (points not all coincident, a positive finite scale)."""
-    source, target = matches.points_b[samples], matches.points_a[samples]  # (K, 3, 3): b's points onto a's
-    mean_source, mean_target = source.mean(axis=1), target.mean(axis=1)
-    centred_source, centred_target = source - mean_source[:, None], target - mean_target[:, None]
-    variance_source = np.mean(np.sum(centred_source**2, axis=2), axis=1)
-    U, d, Vt = np.linalg.svd(np.swapaxes(centred_target, 1, 2) @ centred_source / MINIMAL_SET)
-    signs = np.ones_like(d)
-    signs[:, 2] = np.where(np.linalg.det(U) * np.linalg.det(Vt) < 0.0, -1.0, 1.0)  # a rotation, not a reflection
-    R = (U * signs[:, None, :]) @ Vt
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.sum(d * signs, axis=1) / variance_source
+    R, t, scale, variance_source = _umeyama_of_each(matches.points_b[samples], matches.points_a[samples], True)
     S = np.zeros((len(samples), 4, 4))
     S[:, :3, :3] = scale[:, None, None] * R
-    S[:, :3, 3] = mean_target - scale[:, None] * np.einsum("kij,kj->ki", R, mean_source)
+    S[:, :3, 3] = t
     S[:, 3, 3] = 1.0
     return S, (variance_source > 0.0) & (scale > 0.0) & np.isfinite(scale)
 
@@ -259,9 +260,8 @@ def _inliers_of_each(matches: Sim3Matches, camera: PinholeCamera, similarities: 
         in_b = np.einsum("kij,knj->kni", inverse_sR, matches.points_a[None] - t[:, None])
         inliers = (in_a[..., 2] > 0.0) & (in_b[..., 2] > 0.0)
         for points, uv, sigma2 in ((in_a, matches.uv_a, matches.sigma2_a), (in_b, matches.uv_b, matches.sigma2_b)):
-            errors = ((camera.fx * points[..., 0] / points[..., 2] + camera.cx - uv[:, 0]) ** 2
-                      + (camera.fy * points[..., 1] / points[..., 2] + camera.cy - uv[:, 1]) ** 2) / sigma2
-            inliers &= errors < chi2  # NaN (a point on a camera's plane) compares False
+            pixels = project_points(camera, points.reshape(-1, 3)).reshape(points.shape[:2] + (2,))
+            inliers &= np.sum((pixels - uv) ** 2, axis=2) / sigma2 < chi2  # NaN (on a camera's plane): False
     return inliers & fitted[:, None]
 
 
