@@ -126,7 +126,7 @@ class Odometry:
         self.snapshots: dict[str, MapSnapshot] = {}  # the newest of each mapper ("direct", "features")
         self.mode = _Mode.DIRECT
         # Why the feature map holds still (judge_keyframe): it overruled a direct keyframe, and takes none until it
-        # agrees with one again, the view leaves it, or a frame goes on from its pose.
+        # agrees with one again, the view leaves it, or a direct map goes on from its pose (_continue_from).
         self.held: str | None = None
         self.lost_frames = 0  # frames in a row without a pose
         self.lost_since: int | None = None  # the first of them (its index in the sequence)
@@ -329,7 +329,8 @@ class Odometry:
         """While the feature map holds still (it overruled a direct keyframe, ``_add_feature_keyframes``), a frame is
         not tracked against the window it contradicted: where the feature map recovers it, it goes on from the
         recovered pose as after feature tracking (the direct map restarts there from the feature depths in view, or
-        feature tracking takes the next frames); where it does not, the frame gets no pose, reported, as any frame no
+        feature tracking takes the next frames, the hold kept: where it loses the view, the frames come back here, not
+        to the contradicted window); where it does not, the frame gets no pose, reported, as any frame no
         half can place (lost: after ``fdmo.lost_frames_before_reinitialization`` of them a new map begins, while the
         held window is still recovered from). TUM fr1/desk: tracked on in the contradicted window, the ~140 blurred
         frames of a fast sweep were posed 10-70x off in scale until one was recognized; lost instead, a new map begins
@@ -529,12 +530,13 @@ class Odometry:
         feature map's depths (teddy, 13 frames missed right after the start, live under load: 75 points from the
         start's 3-frame baseline, the optima 1.3 px apart, RMSE 13.62 against the motion model's 13.59; the restarted
         map's scale collapsed 10x, unreported, and the run ended 0.135 m off, against 0.006 m in the same window)."""
-        self.held = None  # the frame goes on from the feature map's pose: the map follows the direct half again
         retracked = None
         if direct is not None:
             retracked = self.direct.track(frame, outcome.T_world_cam)
             result.timings_ms["track"] = result.timings_ms.get("track", 0.0) + retracked.ms
         choice = after_recovery(gather_recovered(self.features, outcome, direct, retracked, self.config), self.config)
+        if choice.next is not Next.FEATURE_TRACKING:
+            self.held = None  # a direct map goes on from the feature map's pose: the map follows the direct half again
         if choice.next is Next.RESUME:
             alignment = direct if choice.alignment == "direct" else retracked
             self._resume_window(frame, outcome, direct, retracked, alignment, choice.why, result)
@@ -692,9 +694,10 @@ class Odometry:
         """The feature map grows at each new direct keyframe it does not overrule (fdmo/decide.judge_keyframe). After
         one it overrules it holds still (``held``): the poses of the keyframes after it, and the points they would
         make, are the drifted direct map's, and would pull the feature map with it. Each is checked, and joins where
-        the feature map agrees with it again or no longer sees the view; a frame going on from the feature map's pose
-        ends the hold too (``_continue_from``). A keyframe of a start on probation that the feature map contradicts
-        fails the start instead (its feature map is that start's own)."""
+        the feature map agrees with it again or no longer sees the view; a direct map going on from the feature map's
+        pose ends the hold too (``_continue_from``: resumed or restarted there, not feature tracking). A keyframe of a
+        start on probation that the feature map contradicts fails the start instead (its feature map is that start's
+        own)."""
         for keyframe in new:
             start = time.perf_counter()
             check = self.features.check_keyframe(keyframe.frame_index, keyframe.timestamp, keyframe.image,
