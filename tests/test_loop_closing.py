@@ -14,7 +14,7 @@ from app.sinks.files import KEYFRAMES_FILE, TRAJECTORY_FILE, FilesSink
 from vo_core.config import load_config
 from vo_core.eval.metrics import evaluate
 from vo_core.events import POSE_CORRECTIONS, Event, EventKind, FrameResult
-from vo_core.features.config import LoopClosingConfig
+from vo_core.features.config import LoopClosingConfig, OrbConfig
 from vo_core.features.feature_map import NO_POINT, FeatureMap, FeatureKeyframe
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector
@@ -324,3 +324,69 @@ def test_a_merge_moves_only_the_older_maps_poses_and_the_header_says_so(tmp_path
     sink.close()
     np.testing.assert_allclose(read_trajectory(tmp_path / TRAJECTORY_FILE).positions[:, 1], [0.5, 0.5, 0, 0])
     assert "merged into the final map at frame 3" in (tmp_path / TRAJECTORY_FILE).read_text()
+
+
+# A place seen by a settled keyframe of an older map and by a new keyframe of the active one (loop_closing._seen_by).
+PLACE_POINTS = 40
+LATER_DRIFT = 0.02  # of a point's depth, along each axis: the old keyframe sees it about 5 px off its feature at f = 250
+# (fr1/desk: an old keyframe's points 3-6 px off its features, median, at f = 517)
+SETTLED_PX = 1e-6
+
+
+def keyframe_seeing(keyframe_id: int, T_world_cam: np.ndarray, points_world: np.ndarray, camera,
+                    feature_map: FeatureMap) -> FeatureKeyframe:
+    """A keyframe whose features lie where ``points_world`` project, each observing a new map point there."""
+    count = len(points_world)
+    uv = camera.project((points_world - T_world_cam[:3, 3]) @ T_world_cam[:3, :3])
+    features = Features(uv, np.zeros(count, np.int64), np.zeros(count), np.zeros(count, np.float32),
+                        np.zeros((count, 32), np.uint8))
+    keyframe = FeatureKeyframe(keyframe_id, keyframe_id, float(keyframe_id), T_world_cam.copy(), features,
+                               BowVector.empty(), np.zeros(count, np.int64))
+    keyframe.point_ids = feature_map.points.add(points_world, features.descriptors, keyframe_id,
+                                                np.ones(count), np.zeros(count, np.int64))
+    feature_map.add_keyframe(keyframe)
+    return keyframe
+
+
+def test_a_settled_keyframe_measures_a_loop_on_the_view_it_settled_on():
+    """An old map's keyframe settles (its direct twin left the window), and later adjustments at other poses move its
+    points off its features (LATER_DRIFT): on the map's points a new map's keyframe at the same place finds no
+    similarity that half of their 40 matches agree with (RANSAC's 20, ORB-SLAM2's), on the view it settled on all 40
+    agree, and a move by a similarity scales that view as it does the map's points."""
+    from vo_core.features.loop_closing import LoopCloser
+    from vo_core.geometry.sim3_solver import ransac_sim3
+
+    camera = default_camera(320, 240)
+    rng = np.random.default_rng(0)
+    place = np.column_stack([rng.uniform(-0.8, 0.8, PLACE_POINTS), rng.uniform(-0.6, 0.6, PLACE_POINTS),
+                             rng.uniform(1.5, 3.0, PLACE_POINTS)])
+    feature_map = FeatureMap()
+    T_world_old = se3_exp(np.array([0.1, 0.0, 0.0, 0.0, 0.05, 0.0]))
+    old = keyframe_seeing(0, T_world_old, place, camera, feature_map)
+    feature_map.settle(old)
+    changed = old.point_ids
+    feature_map.points.position[changed] += LATER_DRIFT * place[:, 2:] * rng.standard_normal((PLACE_POINTS, 3))
+    # The active map has its own frame and scale: the same place at half the size, the camera turned.
+    S_new_world = sim3(0.5, so3_exp(np.array([0.0, 0.0, 0.3])), np.array([1.0, 2.0, 0.0]))
+    T_world_there = T_world_old @ se3_exp(np.array([0.3, 0.0, 0.0, 0.0, -0.15, 0.0]))  # 0.3 m, 9 degrees on
+    T_new_cam = S_new_world @ T_world_there
+    T_new_cam[:3, :3] /= 0.5
+    new = keyframe_seeing(1, T_new_cam, (place @ S_new_world[:3, :3].T) + S_new_world[:3, 3], camera, feature_map)
+
+    closer = LoopCloser(LoopClosingConfig(enabled=True), OrbConfig(), camera)
+    settings = dict(min_inliers=LoopClosingConfig().ransac_min_inliers, max_iterations=300, chi2=9.21,
+                    probability=0.99)
+    features = np.arange(PLACE_POINTS)
+    settled = closer._matches(feature_map, new, features, old, old.point_ids)
+    fit = ransac_sim3(settled, camera, np.random.default_rng(0), **settings)
+    assert fit is not None and fit.num_inliers == PLACE_POINTS
+    assert np.abs(camera.project(settled.points_b) - old.features.uv).max() < SETTLED_PX
+    old.seen_points = None  # as if it had never settled: the map's points as they are now
+    assert ransac_sim3(closer._matches(feature_map, new, features, old, old.point_ids), camera,
+                       np.random.default_rng(0), **settings) is None
+
+    feature_map.settle(old)
+    before = old.seen_points.copy()
+    old.place(sim3(2.0, np.eye(3), np.ones(3)) @ old.T_world_cam)
+    np.testing.assert_allclose(old.seen_points, 2.0 * before)
+    np.testing.assert_allclose(old.T_world_cam[:3, :3], T_world_old[:3, :3])

@@ -353,12 +353,10 @@ class LoopCloser:
     def _matches(self, feature_map: FeatureMap, keyframe: FeatureKeyframe, features: np.ndarray,
                  loop: FeatureKeyframe, points: np.ndarray) -> Sim3Matches:
         """The keyframe's points (its features' own) and the loop keyframe's matched points (each one it observes),
-        each in its camera's frame, with where each keyframe saw them."""
-        positions = feature_map.points.position
+        each in its camera's frame as that keyframe sees it (``_seen_by``), with where each keyframe saw them."""
         loop_features = _observing_features(loop, points)
         return Sim3Matches(
-            points_a=transform_points(se3_inverse(keyframe.T_world_cam), positions[keyframe.point_ids[features]]),
-            points_b=transform_points(se3_inverse(loop.T_world_cam), positions[points]),
+            points_a=_seen_by(feature_map, keyframe, features), points_b=_seen_by(feature_map, loop, loop_features),
             uv_a=keyframe.features.uv[features], uv_b=loop.features.uv[loop_features],
             sigma2_a=self.sigma2[keyframe.features.level[features]],
             sigma2_b=self.sigma2[loop.features.level[loop_features]])
@@ -409,7 +407,7 @@ class LoopCloser:
         corrections = result.S_world_nodes @ np.array([se3_inverse(T) for T in before])
         self._move_points(feature_map, row, corrections)
         for frame_index, S_world_cam in zip(frames, result.S_world_nodes):
-            feature_map.keyframes[frame_index].T_world_cam = _rigid(S_world_cam)
+            feature_map.keyframes[frame_index].place(S_world_cam)
         fused = self._fuse(feature_map, keyframe, verified)
         timed = sorted((feature_map.keyframes[f].timestamp, C) for f, C in zip(frames, corrections))
         positions = np.array([keyframe.centre, feature_map.keyframes[loop_frame].centre])
@@ -426,7 +424,8 @@ class LoopCloser:
         S_active_old = keyframe.T_world_cam @ verified.S_keyframe_loop @ se3_inverse(merged.T_world_cam)
         for other in feature_map.keyframes.values():
             if other.segment == segment:
-                other.T_world_cam, other.segment = _rigid(S_active_old @ other.T_world_cam), feature_map.segment
+                other.place(S_active_old @ other.T_world_cam)
+                other.segment = feature_map.segment
         points = feature_map.points
         moved = np.flatnonzero(points.alive & (points.segment == segment))
         _move(points, moved, S_active_old)
@@ -533,6 +532,22 @@ def _loop_information(verified: _Verified, T_i_keyframe: np.ndarray, S_i_j: np.n
     to_edge_inverse = np.linalg.inv(sim3_adjoint(sim3_inverse(S_i_j) @ T_i_keyframe))
     carried = to_edge_inverse.T @ verified.information @ to_edge_inverse
     return 0.5 * (carried + carried.T) + np.eye(SIM3_DOF)
+
+
+def _seen_by(feature_map: FeatureMap, keyframe: FeatureKeyframe, features: np.ndarray) -> np.ndarray:
+    """The map points of the keyframe's ``features``, (N, 3) in its camera frame, as it saw them when its pose became
+    final (FeatureKeyframe.seen_points) where it did, else where the map has them now. A loop's similarity relates
+    two keyframes' views, and an old keyframe's points have since been adjusted at later poses: on fr1/desk, whose
+    direct map shrinks before its second map begins, a new map's keyframes and the first map's found the right places
+    (their bag-of-words matches on the ground truth's epipolar lines) and RANSAC no similarity that 20 of 20-43 of
+    them agree with, the old keyframes' points 3-6 px off their own features (median); with the views they settled on,
+    both runs of two maps merged them."""
+    now = transform_points(se3_inverse(keyframe.T_world_cam),
+                           feature_map.points.position[keyframe.point_ids[features]])
+    if keyframe.seen_points is None:
+        return now
+    then = keyframe.seen_points[features]
+    return np.where(np.isfinite(then[:, :1]), then, now)
 
 
 def _observing_features(keyframe: FeatureKeyframe, point_ids: np.ndarray) -> np.ndarray:

@@ -356,11 +356,10 @@ class FeatureMapper:
 
     @staticmethod
     def leave_direct_window(feature_map: FeatureMap, direct_window: set[int]) -> None:
-        """Keyframes whose direct twin was marginalized may be culled from now on; their images are dropped."""
+        """Keyframes whose direct twin was marginalized may be culled from now on (FeatureMap.settle)."""
         for keyframe in feature_map.keyframes.values():
             if keyframe.in_direct_window and keyframe.frame_index not in direct_window:
-                keyframe.in_direct_window = False
-                keyframe.image = None
+                feature_map.settle(keyframe)
 
     def cull_keyframes(self, feature_map: FeatureMap) -> list[int]:
         """FDMO 4.4 (ORB-SLAM2 KeyFrameCulling): a keyframe whose points are 90 % seen by at least 3 other
