@@ -326,7 +326,8 @@ def test_a_merge_moves_only_the_older_maps_poses_and_the_header_says_so(tmp_path
     assert "merged into the final map at frame 3" in (tmp_path / TRAJECTORY_FILE).read_text()
 
 
-# A place seen by a settled keyframe of an older map and by a new keyframe of the active one (loop_closing._seen_by).
+# A place seen by a settled keyframe of an older map and by a new keyframe of the active one
+# (loop_closing._seen_by).
 PLACE_POINTS = 40
 LATER_DRIFT = 0.02  # of a point's depth, along each axis: the old keyframe sees it about 5 px off its feature at f = 250
 # (fr1/desk: an old keyframe's points 3-6 px off its features, median, at f = 517)
@@ -373,9 +374,10 @@ def test_a_settled_keyframe_measures_a_loop_on_the_view_it_settled_on():
     T_new_cam[:3, :3] /= 0.5
     new = keyframe_seeing(1, T_new_cam, (place @ S_new_world[:3, :3].T) + S_new_world[:3, 3], camera, feature_map)
 
-    closer = LoopCloser(LoopClosingConfig(enabled=True), OrbConfig(), camera)
-    settings = dict(min_inliers=LoopClosingConfig().ransac_min_inliers, max_iterations=300, chi2=9.21,
-                    probability=0.99)
+    config = LoopClosingConfig(enabled=True)
+    closer = LoopCloser(config, OrbConfig(), camera)
+    settings = dict(min_inliers=config.ransac_min_inliers, max_iterations=config.ransac_max_iterations,
+                    chi2=config.ransac_chi2, probability=config.ransac_probability)
     features = np.arange(PLACE_POINTS)
     settled = closer._matches(feature_map, new, features, old, old.point_ids)
     fit = ransac_sim3(settled, camera, np.random.default_rng(0), **settings)

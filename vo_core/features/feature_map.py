@@ -25,7 +25,7 @@ from vo_core.features.matcher import least_median_descriptors
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector, InvertedIndex
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, sim3_scale, transform_points
+from vo_core.geometry.lie import se3_inverse, sim3_pose, sim3_scale, transform_points
 from vo_core.geometry.reprojection import sum_by
 
 NO_POINT = -1
@@ -69,11 +69,9 @@ class FeatureKeyframe:
     def place(self, S_world_cam: np.ndarray) -> None:
         """A loop's correction or a merge moves the keyframe by a similarity: its pose takes the rotation and the
         centre, and what it saw (``seen_points``) the scale, as the map's points do."""
-        scale = sim3_scale(S_world_cam)
-        self.T_world_cam = S_world_cam.copy()
-        self.T_world_cam[:3, :3] /= scale
+        self.T_world_cam = sim3_pose(S_world_cam)
         if self.seen_points is not None:
-            self.seen_points = self.seen_points * scale
+            self.seen_points = self.seen_points * sim3_scale(S_world_cam)
 
 
 class MapPoints:
@@ -233,8 +231,11 @@ class FeatureMap:
         observed = keyframe.observed()
         observed = observed[self.points.alive[keyframe.point_ids[observed]]]
         keyframe.seen_points = np.full((len(keyframe.point_ids), 3), np.nan)
-        keyframe.seen_points[observed] = transform_points(se3_inverse(keyframe.T_world_cam),
-                                                          self.points.position[keyframe.point_ids[observed]])
+        keyframe.seen_points[observed] = self.in_camera(keyframe, keyframe.point_ids[observed])
+
+    def in_camera(self, keyframe: FeatureKeyframe, point_ids: np.ndarray) -> np.ndarray:
+        """The points' positions (N, 3) in the keyframe's camera frame, where the map has them now."""
+        return transform_points(se3_inverse(keyframe.T_world_cam), self.points.position[point_ids])
 
     def begin_segment(self) -> None:
         """The direct map starts anew at a new scale: what the map holds becomes an older segment."""

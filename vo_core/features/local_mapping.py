@@ -27,7 +27,7 @@ from vo_core.features.feature_map import NO_POINT, Covisibility, FeatureKeyframe
 from vo_core.features.mapping import FeatureMapper
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.geometry.lie import se3_inverse
 from vo_core.geometry.reprojection import level_information
 
 
@@ -285,7 +285,7 @@ class LocalMapper:
         points = keyframe.point_ids[keyframe.observed()]
         if len(points) == 0:
             return np.nan
-        depths = transform_points(se3_inverse(keyframe.T_world_cam), feature_map.points.position[points])[:, 2]
+        depths = feature_map.in_camera(keyframe, points)[:, 2]
         return float(np.median(depths))
 
     def _usable(self, poses, positions, pose_index, point) -> np.ndarray:

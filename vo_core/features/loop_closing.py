@@ -42,7 +42,7 @@ from vo_core.features.matcher import match_by_bow, search_by_projection
 from vo_core.features.orb import level_sigma2s
 from vo_core.features.vocabulary import bow_score
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.lie import se3_inverse, sim3_adjoint, sim3_inverse, sim3_scale, transform_points
+from vo_core.geometry.lie import se3_inverse, sim3_adjoint, sim3_inverse, sim3_pose, sim3_scale, transform_points
 from vo_core.geometry.pose_graph import PoseGraphEdge, optimize_pose_graph
 from vo_core.geometry.sim3_solver import (SIM3_DOF, Sim3Matches, Sim3Sightings, ransac_sim3, refine_sim3,
                                           refine_sim3_on_sightings, reprojection_inliers, sim3_information,
@@ -257,7 +257,7 @@ class LoopCloser:
         # the matches' similarity and from the same without its change of scale (one map keeps one scale where it
         # has not drifted); the one more sightings agree with is kept.
         refined = max((self._refined_on_neighbourhoods(feature_map, graph, keyframe, candidate, start)
-                       for start in (fit.S_a_b, _rigid(fit.S_a_b))), key=lambda r: r.sightings)
+                       for start in (fit.S_a_b, sim3_pose(fit.S_a_b))), key=lambda r: r.sightings)
         S_keyframe_loop, information, candidate.sightings = refined
         candidate.scale = sim3_scale(S_keyframe_loop)
         kept = reprojection_inliers(matches, self.camera, S_keyframe_loop, config.refine_chi2)
@@ -314,8 +314,8 @@ class LoopCloser:
         for frame in seers:
             seer = feature_map.keyframes[frame]
             T_view_reference = se3_inverse(seer.T_world_cam) @ seer_reference.T_world_cam
-            view = project_points(feature_map.points, point_ids, _rigid(S_world_seer @ se3_inverse(T_view_reference)),
-                                  self.camera, self.orb)
+            T_world_view = sim3_pose(S_world_seer @ se3_inverse(T_view_reference))
+            view = project_points(feature_map.points, point_ids, T_world_view, self.camera, self.orb)
             index_point, index_feature = search_by_projection(
                 seer.features, view.uv, feature_map.points.descriptor[view.point_ids], view.level,
                 self.config.projection_radius_px, scale_factor=self.orb.scale_factor)
@@ -367,7 +367,7 @@ class LoopCloser:
         """Points of the loop's side not matched yet, projected into the keyframe at the pose the Sim(3) gives it
         in the loop's map, and searched among its features not matched yet (with a map point of their own where
         ``with_points_only``: the Sim(3) needs both ends). Returns (feature indices, point ids)."""
-        T_world_keyframe = _rigid(feature_map.keyframes[loop_frame].T_world_cam @ sim3_inverse(S_keyframe_loop))
+        T_world_keyframe = sim3_pose(feature_map.keyframes[loop_frame].T_world_cam @ sim3_inverse(S_keyframe_loop))
         point_ids = np.setdiff1d(point_ids, matched_points)
         view = project_points(feature_map.points, point_ids, T_world_keyframe, self.camera, self.orb)
         available = np.ones(len(keyframe.features), bool)
@@ -542,8 +542,7 @@ def _seen_by(feature_map: FeatureMap, keyframe: FeatureKeyframe, features: np.nd
     (their bag-of-words matches on the ground truth's epipolar lines) and RANSAC no similarity that 20 of 20-43 of
     them agree with, the old keyframes' points 3-6 px off their own features (median); with the views they settled on,
     both runs of two maps merged them."""
-    now = transform_points(se3_inverse(keyframe.T_world_cam),
-                           feature_map.points.position[keyframe.point_ids[features]])
+    now = feature_map.in_camera(keyframe, keyframe.point_ids[features])
     if keyframe.seen_points is None:
         return now
     then = keyframe.seen_points[features]
@@ -563,11 +562,3 @@ def _move(points, point_ids: np.ndarray, S: np.ndarray) -> None:
     """Points moved by a similarity (world -> world), their reference distances (the scale prediction) with it."""
     points.position[point_ids] = transform_points(S, points.position[point_ids])
     points.reference_distance[point_ids] *= sim3_scale(S)
-
-
-def _rigid(S: np.ndarray) -> np.ndarray:
-    """The camera pose of a similarity camera->world: its rotation and centre (the scale is the structure's)."""
-    T = S.copy()
-    T[:3, :3] /= sim3_scale(S)
-    return T
-

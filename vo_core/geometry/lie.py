@@ -260,6 +260,13 @@ def sim3_log(S: np.ndarray) -> np.ndarray:
     return np.concatenate([v, w, [sigma]])
 
 
+def sim3_pose(S_world_cam: np.ndarray) -> np.ndarray:
+    """The camera pose of a similarity camera -> world: its rotation and centre (the scale is the structure's)."""
+    T_world_cam = S_world_cam.copy()
+    T_world_cam[:3, :3] /= sim3_scale(S_world_cam)
+    return T_world_cam
+
+
 def sim3_inverse(S: np.ndarray) -> np.ndarray:
     """[sR t]^-1 = [R^T/s, -R^T t / s]."""
     s = sim3_scale(S)
