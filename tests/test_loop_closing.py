@@ -16,9 +16,11 @@ from vo_core.eval.metrics import evaluate
 from vo_core.events import POSE_CORRECTIONS, Event, EventKind, FrameResult
 from vo_core.features.config import LoopClosingConfig, OrbConfig
 from vo_core.features.feature_map import NO_POINT, FeatureMap, FeatureKeyframe
+from vo_core.features.loop_closing import _hold_odometry_scale
 from vo_core.features.orb import Features
 from vo_core.features.vocabulary import BowVector
 from vo_core.geometry.lie import se3_exp, se3_inverse, sim3, so3_exp, so3_geodesic_angle
+from vo_core.geometry.pose_graph import PoseGraphEdge, optimize_pose_graph
 from vo_core.synthetic import (Renderer, Scene, SyntheticSequence, SyntheticTrajectory, TrajectoryConfig,
                                 default_camera, make_sequence)
 from vo_core.synthetic.faults import looping
@@ -110,6 +112,40 @@ def test_a_closed_loops_keyframes_stay_and_join_every_later_pose_graph(circuit_t
     edges = closer._essential_graph(feature_map, row, poses, feature_map.covisibility_graph())
     assert {(row[older], row[newer]) for older, newer in feature_map.loop_edges} <= {(e.i, e.j) for e in edges}
 
+
+
+def test_a_loop_spreads_its_scale_over_the_odometry_not_onto_a_run_between_two_weak_pairs():
+    """A chain 11 m long by the odometry that a loop measures 10 m long (the newest keyframe held, as the window
+    is). Two of its odometry edges tell their change of scale 100x less surely than the others (pairs a few
+    centimetres apart, fr1/desk played backward): the pose graph would shrink the run between them by a quarter as
+    one block, the cheap way to take a metre off (a change of scale 0.25 in log across a weak pair). Held at the
+    median odometry edge's scale information, the loop is spread along the chain."""
+    count = 12
+
+    def along_x(metres: float) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3] = metres
+        return T
+
+    def edges() -> list[PoseGraphEdge]:
+        weak = (3, 7)
+        chain = [PoseGraphEdge(k, k + 1, along_x(1.0),
+                               information=np.diag([1e6] * 6 + [1e2 if k in weak else 1e4]))
+                 for k in range(count - 1)]
+        return chain + [PoseGraphEdge(0, count - 1, along_x(10.0), information=np.diag([1e6] * 7))]
+
+    def largest_scale_step(graph: list[PoseGraphEdge]) -> float:
+        held = np.arange(count) == count - 1
+        nodes = optimize_pose_graph(np.array([along_x(k) for k in range(count)]), graph, held,
+                                    iterations=20).S_world_nodes
+        scales = np.cbrt(np.linalg.det(nodes[:, :3, :3]))
+        return float(np.abs(np.diff(np.log(scales))).max())
+
+    assert largest_scale_step(edges()) > 0.2
+    held_scale = edges()
+    _hold_odometry_scale(held_scale)
+    assert [edge.information[6, 6] for edge in held_scale] == [1e4] * (count - 1) + [1e6]  # the loop's untouched
+    assert largest_scale_step(held_scale) < 0.05
 
 BLACKOUT_FROM, BLACKOUT_FRAMES, MERGE_RUN_FRAMES = 70, 50, 300  # the lens covered for 100 degrees of the turn
 
