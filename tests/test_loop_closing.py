@@ -113,7 +113,6 @@ def test_a_closed_loops_keyframes_stay_and_join_every_later_pose_graph(circuit_t
     assert {(row[older], row[newer]) for older, newer in feature_map.loop_edges} <= {(e.i, e.j) for e in edges}
 
 
-
 def test_a_loop_spreads_its_scale_over_the_odometry_not_onto_a_run_between_two_weak_pairs():
     """A chain 11 m long by the odometry that a loop measures 10 m long (the newest keyframe held, as the window
     is). Two of its odometry edges tell their change of scale 100x less surely than the others (pairs a few
@@ -146,6 +145,7 @@ def test_a_loop_spreads_its_scale_over_the_odometry_not_onto_a_run_between_two_w
     _hold_odometry_scale(held_scale)
     assert [edge.information[6, 6] for edge in held_scale] == [1e4] * (count - 1) + [1e6]  # the loop's untouched
     assert largest_scale_step(held_scale) < 0.05
+
 
 BLACKOUT_FROM, BLACKOUT_FRAMES, MERGE_RUN_FRAMES = 70, 50, 300  # the lens covered for 100 degrees of the turn
 
