@@ -465,6 +465,40 @@ def test_the_feature_map_does_not_follow_a_collapsed_direct_map_through_frames_i
     assert ate_without(results, FAULT_START, restarted[0] - 1) < 1.5 * clean_ate + 1e-3
 
 
+def test_a_feature_map_with_poses_of_its_own_tracks_on_through_frames_the_held_map_cannot_recognize(clean_ate):
+    """With ``features.mapping.own_poses`` the feature map that overruled the collapsed direct map does not wait for a
+    recovery of the frames after it: feature tracking goes on from its pose for the overruled keyframe, growing the map
+    at keyframes of its own (features/following.py), and the direct map restarts at one of them. The frames a recovery
+    would not recognize (here, as in ``run_collapsed``, the first 8 it is asked) are all posed, at one scale: the feature
+    map's, which differs from the direct map's before the collapse by what the two maps drifted apart (without the
+    frames posed in the collapsed map, 3.6x the clean run's ATE; the collapse kept: 77x)."""
+    unrecognized = 8
+    results, _ = run_collapsed(["features.mapping.own_poses=true"], unrecognized=unrecognized)
+    caught = frames_with(results, EventKind.KEYFRAME_OVERRULED)[0]
+    followed = frames_with(results, EventKind.FEATURE_TRACKING)
+    assert followed and followed[0] == caught + 1
+    assert not frames_with(results, EventKind.RECOVERY_FAILED)
+    assert all(r.T_world_cam is not None for r in results if r.frame_index > caught)
+    restarts = [e for r in results for e in r.events if e.kind is EventKind.DIRECT_RESTARTED]
+    assert restarts and restarts[0].details["stage"] == "following"
+    assert restarts[0].details["keyframe"] == restarts[0].frame_index  # at a keyframe feature tracking made
+    assert ate_without(results, FAULT_START, caught) < 5 * clean_ate + 1e-3
+
+
+def test_a_feature_map_with_poses_of_its_own_keeps_a_clean_run_as_accurate():
+    """``features.mapping.own_poses`` on the clean sequence: the feature keyframes take the poses their checks
+    measure and local mapping adjusts them, the direct map is never overruled, and the run is as accurate as FDMO's."""
+    fdmo_ate, _, _ = run("fdmo", SMOOTH)
+    own_ate, results, odometry = run("fdmo", SMOOTH, overrides=["features.mapping.own_poses=true"])
+    assert EventKind.KEYFRAME_OVERRULED not in kinds(results)
+    assert all(r.T_world_cam is not None for r in results[5:])
+    direct_poses = {k.frame_index: k.T_world_cam for k in odometry.direct.keyframes}
+    own = [f for f, k in odometry.features.map.keyframes.items()
+           if f in direct_poses and not np.allclose(k.T_world_cam, direct_poses[f])]
+    assert own  # the feature map's keyframes are not at their direct twins' poses
+    assert own_ate < 1.5 * fdmo_ate + 1e-3
+
+
 def test_a_hold_no_frame_ends_begins_a_new_map_as_any_loss_does():
     """Frames the held feature map cannot recover are lost frames like any other: after
     ``fdmo.lost_frames_before_reinitialization`` of them a new map begins from scratch, reported."""

@@ -55,6 +55,13 @@ class MappingConfig:
     chi2_two_dof: float = 5.991  # ORB-SLAM2: 95 % of a 2-DOF chi-square, on the level-normalized squared error
     scale_consistency: float = 1.5  # ORB-SLAM2 CreateNewMapPoints: ratioFactor = 1.5 * scale factor
     structure_iterations: int = 10  # FDMO 4.3: ten Gauss-Newton iterations of Eq. 3 per point
+    # Ours, off by default (FDMO keeps the direct poses): the feature map keeps poses of its own. A new keyframe takes
+    # the pose its check measured in the map (features/feature_odometry.py) and ORB-SLAM2's local mapping adjusts it
+    # with its neighbours (local bundle adjustment, free poses), so that the map stays consistent where the direct
+    # map drifts; a keyframe it overrules hands tracking to the features (features/following.py) until the direct map
+    # restarts at one of their keyframes. TUM fr1/desk, stride 1, seeds 0-2: 0.026 / 0.024 / 0.036 m where FDMO gets
+    # 0.08-0.38; but parking 0.058 m (0.0135) and strides 2-3 bimodal: BENCHMARKS.md, Real data.
+    own_poses: bool = False
 
 
 @dataclass

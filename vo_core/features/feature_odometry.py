@@ -2,8 +2,10 @@
 recovery that measures a pose from it, and feature-based tracking. Like DirectOdometry it offers steps and
 decides nothing: vo_core/system.py calls them in the order of FDMO's flowcharts.
 
-Nothing here estimates a keyframe pose: keyframes take their direct twins' poses (``add_keyframe`` first
-copies the window's optimized poses over, FDMO 4.3).
+A keyframe takes its direct twin's pose (``add_keyframe`` first copies the window's optimized poses over, FDMO 4.3).
+With ``mapping.own_poses`` (ours, off by default) the map keeps poses of its own instead: a keyframe takes the pose its
+check measured in the map, ORB-SLAM2's local mapping adjusts it with its neighbours, and feature tracking grows the map
+at keyframes of its own (``follow``, features/following.py).
 
 One worker thread beside the caller describes and checks the next keyframe (``describe_ahead``) and grows the map
 (``add_keyframe_beside``), in the order they were asked for; every other method first waits for the growth in flight
@@ -20,6 +22,8 @@ import numpy as np
 
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import FeatureKeyframe, FeatureMap, project_points
+from vo_core.features.following import FOLLOWING, FeatureFollower, FollowedFrame
+from vo_core.features.local_mapping import LocalMapper
 from vo_core.features.loop_closing import LoopCloser
 from vo_core.features.mapping import FeatureMapper, KeyframeCheck, MappingReport
 from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
@@ -39,6 +43,11 @@ class FeatureOdometry:
         self.relocalizer = Relocalizer(config, camera, vocabulary)
         self.loop_closer = LoopCloser(config.loop_closing, config.orb, camera) if config.loop_closing.enabled else None
         self.checked: FeatureKeyframe | None = None  # the keyframe check_keyframe described, for add_keyframe
+        self.checked_pose: PoseFromMap | None = None  # and the map's pose for it
+        # With mapping.own_poses: ORB-SLAM2's local mapping, and the feature tracking that uses it
+        self.local_mapper = LocalMapper(config, camera, self.mapper) if config.mapping.own_poses else None
+        self.follower = FeatureFollower(config, camera, self.relocalizer, self.local_mapper) \
+            if config.mapping.own_poses else None
         self.ahead: _Ahead | None = None  # a keyframe being described and checked beside the direct half's mapping
         self.growth: Future | None = None  # a keyframe being mapped beside the caller (add_keyframe_beside)
         self.view_before_growth: tuple[np.ndarray, dict[int, np.ndarray]] | None = None  # map_view meanwhile
@@ -84,9 +93,10 @@ class FeatureOdometry:
         self._settle()
         ahead = self._finish_ahead()
         if ahead is not None and ahead.serves(frame_index, image, T_world_cam, self.map.next_keyframe_id):
-            self.checked, check = ahead.result.result()
+            self.checked, self.checked_pose, check = ahead.result.result()
             return check
-        self.checked, check = self._described_and_checked(frame_index, timestamp, image, T_world_cam, scene_depth)
+        self.checked, self.checked_pose, check = self._described_and_checked(frame_index, timestamp, image,
+                                                                             T_world_cam, scene_depth)
         return check
 
     def _finish_ahead(self) -> _Ahead | None:
@@ -98,15 +108,15 @@ class FeatureOdometry:
         return ahead
 
     def _described_and_checked(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
-                               scene_depth: float) -> tuple[FeatureKeyframe, KeyframeCheck | None]:
+                               scene_depth: float) -> tuple[FeatureKeyframe, PoseFromMap | None, KeyframeCheck | None]:
         keyframe = self.mapper.make_keyframe(self.map.next_keyframe_id, frame_index, timestamp, image, T_world_cam,
                                              scene_depth)
         newest = self.map.newest()
         if newest is None or newest.segment != self.map.segment:
-            return keyframe, None
+            return keyframe, None, None
         frame = FrameFeatures(keyframe.features, keyframe.bow, keyframe.nodes, 0.0)
         pose = self.relocalizer.track_from(self.map, frame, T_world_cam, newest.frame_index).pose
-        return keyframe, KeyframeCheck(pose.T_world_cam, pose.num_inliers, pose.found_fraction,
+        return keyframe, pose, KeyframeCheck(pose.T_world_cam, pose.num_inliers, pose.found_fraction,
                                        self.relocalizer.explained(self.map, pose, T_world_cam, frame), pose.in_view)
 
     def add_keyframe(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
@@ -114,8 +124,9 @@ class FeatureOdometry:
         """FDMO Fig. 4 for a new direct keyframe; ``window_poses`` are the direct window's keyframe poses. With loop
         closing, the keyframe then looks for a loop (loop_closing.py), the window held where a loop moves the map."""
         start = time.perf_counter()
-        keyframe = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth, window_poses)
-        return self._grow(keyframe, set(window_poses), start)
+        keyframe, own_pose = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth,
+                                                   window_poses)
+        return self._grow(keyframe, own_pose, set(window_poses), start)
 
     def add_keyframe_beside(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
                             scene_depth: float, window_poses: dict[int, np.ndarray]) -> None:
@@ -123,29 +134,60 @@ class FeatureOdometry:
         ``take_grown``'s once a later call has waited for it. Not with loop closing: a loop moves the direct window
         at once."""
         start = time.perf_counter()
-        keyframe = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth, window_poses)
+        keyframe, own_pose = self._keyframe_to_map(frame_index, timestamp, image, T_world_cam, scene_depth,
+                                                   window_poses)
         self.view_before_growth = (self.points_world(), self.keyframe_poses())
-        self.growth = self._worker_pool().submit(self._grow, keyframe, set(window_poses), start)
+        self.growth = self._worker_pool().submit(self._grow, keyframe, own_pose, set(window_poses), start)
 
     def _keyframe_to_map(self, frame_index: int, timestamp: float, image: np.ndarray, T_world_cam: np.ndarray,
-                         scene_depth: float, window_poses: dict[int, np.ndarray]) -> FeatureKeyframe:
+                         scene_depth: float, window_poses: dict[int, np.ndarray]) -> tuple[FeatureKeyframe, bool]:
         """The keyframe ``check_keyframe`` described (described now where it did not), at its direct pose, and the
-        map's keyframes at their window poses."""
+        map's keyframes at their window poses; with ``mapping.own_poses``, at the pose its check measured where it
+        measured one (and then True: ``_grow`` maps it as ORB-SLAM2's local mapping does)."""
         self._settle()
         self._finish_ahead()
-        self.map.sync_poses(window_poses)
+        if self.local_mapper is None:
+            self.map.sync_poses(window_poses)
         keyframe, self.checked = self.checked, None
+        pose, self.checked_pose = self.checked_pose, None
         if keyframe is None or keyframe.frame_index != frame_index:
             keyframe = self.mapper.make_keyframe(self.map.next_keyframe_id, frame_index, timestamp, image,
                                                  T_world_cam, scene_depth)
+            pose = None
         keyframe.T_world_cam, keyframe.scene_depth = T_world_cam.copy(), scene_depth
-        return keyframe
+        own_pose = self._measured_own_pose(pose)
+        if own_pose:
+            keyframe.T_world_cam = pose.T_world_cam.copy()
+            keyframe.point_ids[pose.feature_ids[pose.inlier]] = pose.point_ids[pose.inlier]
+        return keyframe, own_pose
 
-    def _grow(self, keyframe: FeatureKeyframe, window_frames: set[int], start: float) -> MappingReport:
-        report = self.mapper.map_keyframe(self.map, keyframe, window_frames, start)
+    def _measured_own_pose(self, pose: PoseFromMap | None) -> bool:
+        """With ``mapping.own_poses``, whether the keyframe's check measured a pose to take: as many inliers as a
+        recovery (FDMO 4.2.2's 30), in a map past its start (its first two keyframes, the start's own, FDMO-mapped)."""
+        return (self.local_mapper is not None and pose is not None and len(self.map) > 2
+                and pose.num_inliers >= self.config.recovery.min_inliers)
+
+    def _grow(self, keyframe: FeatureKeyframe, own_pose: bool, window_frames: set[int], start: float) -> MappingReport:
+        if own_pose:
+            report = self._map_locally(keyframe, window_frames, start)
+        else:
+            report = self.mapper.map_keyframe(self.map, keyframe, window_frames, start)
+            if self.local_mapper is not None:
+                self.local_mapper.reset()  # its statistics are per point id, and the map was renumbered
         if self.loop_closer is not None and keyframe.frame_index in self.map.keyframes:
             report.loop = self.loop_closer.run(self.map, self.map.keyframes[keyframe.frame_index], window_frames)
         return report
+
+    def _map_locally(self, keyframe: FeatureKeyframe, window_frames: set[int], start: float) -> MappingReport:
+        """ORB-SLAM2's local mapping on a keyframe at a pose of its own (``mapping.own_poses``)."""
+        self.map.add_keyframe(keyframe)
+        local = self.local_mapper.process(self.map, keyframe)
+        self.mapper.leave_direct_window(self.map, window_frames)
+        return MappingReport(keyframe.frame_index, features=len(keyframe.features), matched_points=local.tracked_points,
+                             new_points=local.new_points, fused_observations=local.fused_observations,
+                             outlier_observations=local.ba_outliers, culled_points=local.culled_points,
+                             culled_keyframes=local.culled_keyframes, ms=(time.perf_counter() - start) * 1000.0,
+                             new_matches=local.new_matches)
 
     def _settle(self) -> None:
         """The growth in flight finished (its report kept for ``take_grown``): the map is the synchronous one."""
@@ -197,6 +239,28 @@ class FeatureOdometry:
         self._settle()
         return self.relocalizer.track(self.map, image, T_world_guess, around_keyframe)
 
+    def begin_following(self, frame_index: int, timestamp: float, outcome: RecoveryOutcome,
+                        previous: tuple[float, np.ndarray] | None = None) -> None:
+        """Feature tracking goes on from a frame the feature map placed (a recovery, or an overruled keyframe's check
+        with its features, ``checked_outcome``), with the velocity into it where ``previous`` gives one."""
+        self._settle()
+        self.follower.begin(frame_index, timestamp, outcome.features, outcome.pose, outcome.keyframe, previous)
+
+    def checked_outcome(self, frame_index: int) -> RecoveryOutcome | None:
+        """The feature map's pose for the keyframe ``check_keyframe`` checked last, as a recovered frame (None where
+        that was another frame or no pose was measured)."""
+        checked, pose = self.checked, self.checked_pose
+        if checked is None or checked.frame_index != frame_index or pose is None:
+            return None
+        frame = FrameFeatures(checked.features, checked.bow, checked.nodes, 0.0)
+        return RecoveryOutcome(True, stage=FOLLOWING, keyframe=self.map.newest().frame_index, pose=pose,
+                               features=frame)
+
+    def follow(self, frame_index: int, timestamp: float, image: np.ndarray) -> FollowedFrame:
+        """The next frame by feature tracking, the map grown at keyframes of its own (features/following.py)."""
+        self._settle()
+        return self.follower.follow(self.map, frame_index, timestamp, image)
+
     def explained(self, pose: PoseFromMap, T_world_cam: np.ndarray, frame: FrameFeatures) -> float:
         self._settle()
         return self.relocalizer.explained(self.map, pose, T_world_cam, frame)
@@ -228,6 +292,11 @@ class FeatureOdometry:
         points = self.map.points
         return points.position[points.alive & (points.segment == self.map.segment)]
 
+    def final_poses(self) -> dict[int, np.ndarray]:
+        """Every keyframe's pose as the map ends, a culled one's on its parent's (FeatureMap.final_poses)."""
+        self._settle()
+        return self.map.final_poses()
+
     def keyframe_poses(self) -> dict[int, np.ndarray]:
         self._settle()
         return {k.frame_index: k.T_world_cam for k in self.map.active_keyframes()}
@@ -253,7 +322,7 @@ class _Ahead:
     frame_index: int
     image: np.ndarray
     T_world_cam: np.ndarray
-    result: Future  # (FeatureKeyframe, KeyframeCheck | None)
+    result: Future  # (FeatureKeyframe, PoseFromMap | None, KeyframeCheck | None)
 
     def serves(self, frame_index: int, image: np.ndarray, T_world_cam: np.ndarray, next_keyframe_id: int) -> bool:
         """(Asked once the result is there.) The keyframe described took the map's next id when it ran. The image is

@@ -230,3 +230,12 @@ class FeatureTracker:
         well_observed = int(np.sum(feature_map.observation_counts(points) >= min_observations))
         ratio = tracking.reference_ratio_keyframe if keyframes >= 2 else tracking.reference_ratio_two_keyframes
         return inliers < ratio * well_observed and inliers > tracking.min_inliers_for_keyframe
+
+
+def local_mapping_idle(since_keyframe_s: float, frame_period_s: float, busy_s: float) -> bool:
+    """ORB-SLAM2 takes a keyframe only while local mapping is idle: once the camera time it would have been busy
+    (``busy_s``) has passed since the last keyframe, counted in frames at the camera's rate (rounded: timestamps are
+    not exact multiples of the period); always while the rate is not known yet."""
+    if not np.isfinite(frame_period_s):
+        return True
+    return np.round(since_keyframe_s / frame_period_s) >= np.round(busy_s / frame_period_s)

@@ -41,7 +41,7 @@ from vo_core.geometry.motion_model import extrapolate
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.features.config import FeatureConfig
 from vo_core.features.feature_map import FeatureKeyframe, FeatureMap
-from vo_core.features.feature_tracking import FeatureTracker, TrackedFrame, TrackingOutcome
+from vo_core.features.feature_tracking import FeatureTracker, TrackedFrame, TrackingOutcome, local_mapping_idle
 from vo_core.features.local_mapping import LocalMapper, LocalMappingReport
 from vo_core.features.mapping import FeatureMapper
 from vo_core.features.orb import OrbExtractor
@@ -256,8 +256,8 @@ class FeatureOnlyOdometry:
         tracking = self.config.odometry.tracking
         if self._relocalized_recently() and len(self.map) > self._frames_in(tracking.relocalization_grace_s):
             return False
-        mapping_idle = self._frames_in(current.timestamp - self.keyframed_at) >= self._frames_in(
-            tracking.local_mapping_busy_s)
+        mapping_idle = local_mapping_idle(current.timestamp - self.keyframed_at, self.frame_period,
+                                          tracking.local_mapping_busy_s)
         return mapping_idle and self.tracker.tracks_few_reference_points(self.map, current, inliers)
 
     def _relocalized_recently(self) -> bool:
