@@ -56,6 +56,7 @@ from vo_core.geometry.lie import se3_inverse, transform_points
 from vo_core.geometry.multiview import project_world
 from vo_core.init.registry import initializer_factory, start_witness
 from vo_core.mapping_thread import MappingThread
+from vo_core.timing import ms_since
 
 def maps_features_in_a_process(config: Config) -> bool:
     """Whether the odometry's feature half maps in a process of its own: FDMO with mapping threads."""
@@ -254,7 +255,7 @@ class Odometry:
         start = time.perf_counter()
         result = FrameResult(raw_frame.index, raw_frame.timestamp, None, tracked=False)
         frame = self.direct.prepare(raw_frame)
-        result.timings_ms["pyramid"] = _ms_since(start)
+        result.timings_ms["pyramid"] = ms_since(start)
         if self.mode is _Mode.FEATURES:
             self._own_the_maps()
             self._track_features(frame, result)
@@ -277,7 +278,7 @@ class Odometry:
             if events:
                 result.events += events
                 result.timings_ms["feature_mapping"] = result.timings_ms.get("feature_mapping", 0.0) + ms
-        result.timings_ms["total"] = _ms_since(start)
+        result.timings_ms["total"] = ms_since(start)
         return result
 
     def _start_failed(self, frame: DirectFrame, result: FrameResult) -> bool:
@@ -769,7 +770,7 @@ class Odometry:
             if initialization is not None and keyframe.frame_index == initialization.second_frame_index:
                 report.tracked_points = self._add_initial_tracks(initialization, window_poses)
             result.timings_ms["feature_mapping"] = (result.timings_ms.get("feature_mapping", 0.0)
-                                                    + _ms_since(start))
+                                                    + ms_since(start))
             result.events += _feature_keyframe_events(report, checked, result.frame_index, result.timestamp)
             if report.loop is not None:
                 self._report_loop(report.loop, result)
@@ -871,10 +872,6 @@ def _alignment_fits(direct: DirectTracking, retracked: DirectTracking) -> dict:
     """The RMSE of the motion model's alignment and of the one from the recovered pose, for the events."""
     return {"motion_model_rmse": rounded_rmse(direct.rmse_after),
             "recovered_pose_rmse": rounded_rmse(retracked.rmse_after)}
-
-
-def _ms_since(start: float) -> float:
-    return (time.perf_counter() - start) * 1000.0
 
 
 def _feature_keyframe_events(report: MappingReport, checked: dict, frame_index: int, timestamp: float) -> list[Event]:

@@ -58,6 +58,7 @@ from vo_core.errors import InputError
 from vo_core.events import Event, EventKind, FrameResult, MapSnapshot
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.lie import se3_inverse, transform_points
+from vo_core.timing import ms_since
 
 INITIAL_LAST_RMSE = 100.0  # FullSystem: lastCoarseRMSE.setConstant(100)
 # activatePointsMT: currentMinActDist (half-resolution pixels) starts at 2, stays in [0, 4], and moves by these
@@ -335,11 +336,11 @@ class DirectOdometry:
             self._first_frame = frame
             self.initializer_frames = 0
             result.events.append(_event(EventKind.INITIALIZATION_STARTED, frame, {"method": self.initializer.name}))
-            result.timings_ms["initializer"] = _ms_since(start)
+            result.timings_ms["initializer"] = ms_since(start)
             return None
         outcome = self.initializer.track(frame.index, frame.pyramid, frame.exposure)
         self.initializer_frames += 1
-        result.timings_ms["initializer"] = _ms_since(start)
+        result.timings_ms["initializer"] = ms_since(start)
         if outcome is None:
             if self.initializer_frames < self.initializer.max_frames:
                 return None
@@ -391,7 +392,7 @@ class DirectOdometry:
         return DirectTracking(
             reference, best, prior_rmse, rmse_end, saturated_end, achieved, last_rmse, good_enough, tried,
             T_world_cam_prior is not None,
-            _ms_since(start), time_ratio if time_ratio is not None and time_ratio > 1.0 else None,
+            ms_since(start), time_ratio if time_ratio is not None and time_ratio > 1.0 else None,
             motion_px, self._typical_motion_px(),
         )
 
@@ -463,12 +464,12 @@ class DirectOdometry:
             self._trace(frame.pyramid, T_world_cam, affine, frame.exposure)
         else:
             self._tracing = self._run_beside(self._trace, frame.pyramid, T_world_cam, affine, frame.exposure)
-        result.timings_ms["trace"] = _ms_since(start)
+        result.timings_ms["trace"] = ms_since(start)
         if not make_keyframe:
             return None
         start = time.perf_counter()
         keyframe = self._add_keyframe(frame, T_world_cam, affine, result)
-        result.timings_ms["keyframe"] = _ms_since(start)
+        result.timings_ms["keyframe"] = ms_since(start)
         if discard_failed_start and self.discard_failed_start(frame, result):
             return None
         return keyframe
@@ -627,7 +628,7 @@ class DirectOdometry:
             )
         )
         self._add_keyframe(frame, T_world_cam, np.zeros(2), result)
-        result.timings_ms["keyframe"] = _ms_since(start)
+        result.timings_ms["keyframe"] = ms_since(start)
 
     # ------------------------------------------------------------------------------------ tracking
 
@@ -997,10 +998,6 @@ def _unusable(outcome: InitializationResult) -> str | None:
     if not (np.all(np.isfinite(outcome.T_first_second)) and np.all(np.isfinite(outcome.inverse_depths))):
         return "the start's pose or depths are not finite"
     return None
-
-
-def _ms_since(start: float) -> float:
-    return (time.perf_counter() - start) * 1000.0
 
 
 def _posed_as_keyframe(result: FrameResult, keyframe: Keyframe) -> None:

@@ -28,6 +28,7 @@ from vo_core.features.local_mapping import LocalMapper
 from vo_core.features.recovery import FrameFeatures, PoseFromMap, RecoveryOutcome, Relocalizer
 from vo_core.geometry.camera import PinholeCamera
 from vo_core.geometry.motion_model import extrapolate
+from vo_core.timing import ms_since
 
 FOLLOWING = "following"  # RecoveryOutcome.stage of a followed frame
 
@@ -71,7 +72,7 @@ class FeatureFollower:
         tracked = self.tracker.track(feature_map, current, self.last, T_predicted, relocalized_recently=False)
         if not tracked.succeeded:
             return FollowedFrame(RecoveryOutcome(False, tracked.reason, stage=FOLLOWING, features=features,
-                                                 ms=_ms_since(start)))
+                                                 ms=ms_since(start)))
         self.local_mapper.statistics.count(len(feature_map.points), tracked.visible_points,
                                            current.point_ids[current.matched])
         is_keyframe = self._wants_keyframe(feature_map, current, tracked.inliers)
@@ -83,7 +84,7 @@ class FeatureFollower:
         pose = PoseFromMap(current.T_world_cam.copy(), current.point_ids[matched], matched,
                            np.ones(len(matched), bool), in_view=len(tracked.visible_points))
         outcome = RecoveryOutcome(True, stage=FOLLOWING, keyframe=current.reference_keyframe, pose=pose,
-                                  features=features, ms=_ms_since(start))
+                                  features=features, ms=ms_since(start))
         return FollowedFrame(outcome, is_keyframe)
 
     def _wants_keyframe(self, feature_map: FeatureMap, current: TrackedFrame, inliers: int) -> bool:
@@ -109,7 +110,3 @@ class FeatureFollower:
         current.point_ids = keyframe.point_ids.copy()
         current.reference_keyframe = keyframe.frame_index
         self.keyframed_at = current.timestamp
-
-
-def _ms_since(start: float) -> float:
-    return (time.perf_counter() - start) * 1000.0
