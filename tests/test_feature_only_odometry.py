@@ -225,8 +225,15 @@ def _played_again(frame, frames_later: int):
     return dataclasses.replace(frame, index=frame.index + 1000, timestamp=frame.timestamp + frames_later / 30.0)
 
 
-def test_the_sparse_schur_complement_takes_the_dense_step():
+@pytest.mark.parametrize("level_weights", [False, True])
+def test_the_sparse_schur_complement_takes_the_dense_step(level_weights):
+    """The local adjustment's compiled step (``sparse_schur``) is the dense Schur complement's, held poses and each
+    observation's pyramid-level information included."""
     _, _, problem, _ = make_window(seed=1, outliers=40)
+    if level_weights:
+        levels = np.random.default_rng(0).integers(0, 8, len(problem.observation_uv))
+        problem.observation_information = 1.2 ** (-2.0 * levels)
+    assert problem.fixed.any() and not problem.fixed.all()
     dense = adjust_window(BA_CAMERA, problem, BundleAdjustmentSettings())
     sparse = adjust_window(BA_CAMERA, problem, BundleAdjustmentSettings(sparse_schur=True))
     np.testing.assert_allclose(sparse.poses_world_cam, dense.poses_world_cam, atol=1e-9)

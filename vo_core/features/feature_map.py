@@ -447,7 +447,8 @@ class Covisibility:
         self.table = table
         self.frames = np.array(list(feature_map.keyframes), np.int64)
         row_of = {frame_index: row for row, frame_index in enumerate(self.frames)}
-        rows = np.array([row_of[k] for k in table.keyframe.tolist()], np.int64)
+        by_frame = np.argsort(self.frames)  # rows of the observers by a search: a dict lookup each cost ~1 ms a build
+        rows = by_frame[np.searchsorted(self.frames[by_frame], table.keyframe)]
         shape = (len(self.frames), len(feature_map.points))
         seen = sparse.csr_matrix((np.ones(len(rows), np.int64), (rows, table.point)), shape=shape)  # duplicates add
         sees = seen.copy()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
 
 # Chi-square 95 % quantile with 2 degrees of freedom: the outlier threshold of a monocular observation's
@@ -78,3 +79,19 @@ def sum_by(index: np.ndarray, values: np.ndarray, count: int) -> np.ndarray:
     bins = (index[:, None] * width + np.arange(width)).ravel()
     sums = np.bincount(bins, weights=flat.ravel(), minlength=count * width)
     return sums.reshape((count, *values.shape[1:]))
+
+
+@kernel
+def adjugate_3x3(M, out):
+    """``out`` = the adjugate of a 3x3 M (M^-1 times its determinant), and the determinant: a point's 3x3 block of
+    the normal equations solved in closed form (a LAPACK call per point costs more than the point's work)."""
+    out[0, 0] = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
+    out[1, 0] = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
+    out[2, 0] = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
+    out[0, 1] = M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]
+    out[0, 2] = M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]
+    out[1, 1] = M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]
+    out[1, 2] = M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]
+    out[2, 1] = M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]
+    out[2, 2] = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
+    return M[0, 0] * out[0, 0] + M[0, 1] * out[1, 0] + M[0, 2] * out[2, 0]

@@ -27,7 +27,7 @@ import numpy as np
 
 from vo_core.compiled import kernel
 from vo_core.geometry.camera import PinholeCamera
-from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, level_information
+from vo_core.geometry.reprojection import CHI2_2D_95, ORB_SCALE_FACTOR, adjugate_3x3, level_information
 
 ITERATIONS = 10  # FDMO 4.3: "limited the number of iterations ... to ten", no gain beyond
 HUBER_PX = float(np.sqrt(CHI2_2D_95))  # ORB-SLAM2 thHuber2D = sqrt(5.991), on the level-normalized error
@@ -197,18 +197,8 @@ def _gauss_newton(X, rows, active, pose, uv, information, R, t, intrinsics, iter
 @kernel
 def _solve_3x3(H, g):
     """H^-1 g by the adjugate (H symmetric positive semi-definite, floored on its diagonal)."""
-    c00 = H[1, 1] * H[2, 2] - H[1, 2] * H[2, 1]
-    c01 = H[1, 2] * H[2, 0] - H[1, 0] * H[2, 2]
-    c02 = H[1, 0] * H[2, 1] - H[1, 1] * H[2, 0]
-    determinant = H[0, 0] * c00 + H[0, 1] * c01 + H[0, 2] * c02
+    adjugate = np.empty((3, 3))
+    determinant = adjugate_3x3(H, adjugate)
     if determinant == 0.0 or not np.isfinite(determinant):
         return np.zeros(3)
-    inverse = np.empty((3, 3))
-    inverse[0, 0], inverse[1, 0], inverse[2, 0] = c00, c01, c02
-    inverse[0, 1] = H[0, 2] * H[2, 1] - H[0, 1] * H[2, 2]
-    inverse[0, 2] = H[0, 1] * H[1, 2] - H[0, 2] * H[1, 1]
-    inverse[1, 1] = H[0, 0] * H[2, 2] - H[0, 2] * H[2, 0]
-    inverse[1, 2] = H[0, 2] * H[1, 0] - H[0, 0] * H[1, 2]
-    inverse[2, 1] = H[0, 1] * H[2, 0] - H[0, 0] * H[2, 1]
-    inverse[2, 2] = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
-    return inverse @ g / determinant
+    return adjugate @ g / determinant
