@@ -60,7 +60,7 @@ class MappingConfig:
     # with its neighbours (local bundle adjustment, free poses), so that the map stays consistent where the direct
     # map drifts; a keyframe it overrules hands tracking to the features (features/following.py) until the direct map
     # restarts at one of their keyframes. TUM fr1/desk, stride 1, seeds 0-2: 0.020-0.030 m where FDMO gets 0.08-0.38;
-    # but parking 0.033 m (0.0135), strides 2-3 bimodal, 3.5x the time: BENCHMARKS.md, Real data.
+    # but parking 0.033 m (0.0135), strides 2-3 bimodal, 1.7x the time (teddy): BENCHMARKS.md, Real data.
     own_poses: bool = False
 
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vo_core.features.config import FeatureConfig
-from vo_core.features.feature_map import NO_POINT, Covisibility, FeatureKeyframe, FeatureMap
+from vo_core.features.feature_map import NO_POINT, Covisibility, FeatureKeyframe, FeatureMap, positions_in
 from vo_core.features.mapping import FeatureMapper
 from vo_core.geometry.bundle_adjustment import BundleAdjustmentSettings, WindowProblem, adjust_window
 from vo_core.geometry.camera import PinholeCamera
@@ -190,12 +190,11 @@ class LocalMapper:
         keep = np.isin(table.point, points)
         observer, feature, point = table.keyframe[keep], table.feature[keep], table.point[keep]
         observers = list(dict.fromkeys([*local, *np.unique(observer).tolist()]))
-        pose_of = {frame_index: i for i, frame_index in enumerate(observers)}
         fixed = self._held(feature_map, observers, local)
         if fixed.all():
             return
         poses = np.stack([feature_map.keyframes[k].T_world_cam for k in observers])
-        pose_index = np.array([pose_of[int(k)] for k in observer], np.int64)
+        pose_index = positions_in(np.array(observers, np.int64), observer)
         uv, level = feature_map.pixels_of(observer, feature)
         active = self._usable(poses, feature_map.points.position[point], pose_index, point)
         settings = BundleAdjustmentSettings(huber_px=float(np.sqrt(self.local.ba_chi2)), sparse_schur=True)
